@@ -1,0 +1,397 @@
+//! Grey-level images in `[0, 1]`, the input of every detector (METHOD.md §4.1).
+//!
+//! Pixels are `f32`, row-major, index `row·width + col`; pixel `(col, row)` is at image
+//! coordinates `(x, y) = (col, row)` with y down. 8-bit values are divided by 255, 16-bit by
+//! 65535; colour is converted with the Rec. 601 weights `0.299 R + 0.587 G + 0.114 B`.
+//! Odd sizes are fine.
+
+use crate::error::{Error, Result};
+use std::path::Path;
+
+/// Whether the dots are brighter or darker than the background.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Polarity {
+    /// Bright dots on a dark background (the method's convention: phase 0 = dot centre).
+    #[default]
+    BrightDots,
+    /// Dark dots on a bright background: the image is inverted before measurement, so poses
+    /// refer to the dot centres (the original reports them shifted by half a period).
+    DarkDots,
+}
+
+impl std::str::FromStr for Polarity {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "bright" | "bright_dots" => Ok(Polarity::BrightDots),
+            "dark" | "dark_dots" => Ok(Polarity::DarkDots),
+            other => Err(Error::parameter("polarity", format!("expected `bright` or `dark`, got `{other}`"))),
+        }
+    }
+}
+
+/// Pixel layout of a raw buffer (the ROS `sensor_msgs/Image` encodings the library reads).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PixelFormat {
+    /// 1 byte per pixel.
+    Mono8,
+    /// 2 bytes per pixel, little- or big-endian as given.
+    Mono16 {
+        /// Byte order of the samples.
+        big_endian: bool,
+    },
+    /// 3 bytes R, G, B.
+    Rgb8,
+    /// 3 bytes B, G, R.
+    Bgr8,
+    /// 4 bytes R, G, B, A (alpha ignored).
+    Rgba8,
+    /// 4 bytes B, G, R, A (alpha ignored).
+    Bgra8,
+}
+
+impl PixelFormat {
+    /// Bytes per pixel.
+    pub fn bytes_per_pixel(self) -> usize {
+        match self {
+            PixelFormat::Mono8 => 1,
+            PixelFormat::Mono16 { .. } => 2,
+            PixelFormat::Rgb8 | PixelFormat::Bgr8 => 3,
+            PixelFormat::Rgba8 | PixelFormat::Bgra8 => 4,
+        }
+    }
+    /// Parses a ROS encoding name (`mono8`, `mono16`, `rgb8`, `bgr8`, `rgba8`, `bgra8`).
+    pub fn from_ros_encoding(encoding: &str, big_endian: bool) -> Option<Self> {
+        Some(match encoding {
+            "mono8" | "8UC1" => PixelFormat::Mono8,
+            "mono16" | "16UC1" => PixelFormat::Mono16 { big_endian },
+            "rgb8" => PixelFormat::Rgb8,
+            "bgr8" | "8UC3" => PixelFormat::Bgr8,
+            "rgba8" => PixelFormat::Rgba8,
+            "bgra8" | "8UC4" => PixelFormat::Bgra8,
+            _ => return None,
+        })
+    }
+}
+
+const LUMA_R: f32 = 0.299;
+const LUMA_G: f32 = 0.587;
+const LUMA_B: f32 = 0.114;
+
+/// A grey image with `f32` pixels nominally in `[0, 1]` (row-major).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GreyImage {
+    width: usize,
+    height: usize,
+    pixels: Vec<f32>,
+}
+
+impl GreyImage {
+    /// Wraps row-major pixels. Errors if the size is zero, the length is not
+    /// `width·height`, or a value is not finite (NaN, ±∞).
+    pub fn new(width: usize, height: usize, pixels: Vec<f32>) -> Result<Self> {
+        check_size(width, height)?;
+        if pixels.len() != width * height {
+            return Err(Error::InvalidImage(format!(
+                "{} pixel values for a {width}x{height} image (expected {})",
+                pixels.len(),
+                width * height
+            )));
+        }
+        if let Some(i) = pixels.iter().position(|v| !v.is_finite()) {
+            return Err(Error::InvalidImage(format!(
+                "pixel ({}, {}) is not a finite number ({})",
+                i % width,
+                i / width,
+                pixels[i]
+            )));
+        }
+        Ok(GreyImage { width, height, pixels })
+    }
+
+    /// From `f64` samples (used as is, like the original's double arrays).
+    pub fn from_f64(width: usize, height: usize, values: &[f64]) -> Result<Self> {
+        Self::new(width, height, values.iter().map(|&v| v as f32).collect())
+    }
+
+    /// From a raw buffer whose rows are `step` bytes apart (`step ≥ width·bytes_per_pixel`).
+    pub fn from_raw(width: usize, height: usize, step: usize, format: PixelFormat, data: &[u8]) -> Result<Self> {
+        check_size(width, height)?;
+        let bpp = format.bytes_per_pixel();
+        let row_bytes = width
+            .checked_mul(bpp)
+            .ok_or_else(|| Error::InvalidImage("image width overflows".into()))?;
+        if step < row_bytes {
+            return Err(Error::InvalidImage(format!("row step {step} bytes is shorter than a row ({row_bytes} bytes)")));
+        }
+        let needed = step
+            .checked_mul(height)
+            .ok_or_else(|| Error::InvalidImage("image size overflows".into()))?;
+        if data.len() != needed {
+            return Err(Error::InvalidImage(format!(
+                "{} data bytes for {height} rows of {step} bytes (expected {needed})",
+                data.len()
+            )));
+        }
+        let mut pixels = Vec::with_capacity(width * height);
+        for row in data.chunks_exact(step) {
+            let row = &row[..row_bytes];
+            match format {
+                PixelFormat::Mono8 => pixels.extend(row.iter().map(|&v| v as f32 / 255.0)),
+                PixelFormat::Mono16 { big_endian } => pixels.extend(row.chunks_exact(2).map(|b| {
+                    let v = if big_endian { u16::from_be_bytes([b[0], b[1]]) } else { u16::from_le_bytes([b[0], b[1]]) };
+                    v as f32 / 65535.0
+                })),
+                PixelFormat::Rgb8 | PixelFormat::Rgba8 => pixels.extend(row.chunks_exact(bpp).map(|p| luma8(p[0], p[1], p[2]))),
+                PixelFormat::Bgr8 | PixelFormat::Bgra8 => pixels.extend(row.chunks_exact(bpp).map(|p| luma8(p[2], p[1], p[0]))),
+            }
+        }
+        Ok(GreyImage { width, height, pixels })
+    }
+
+    /// From 8-bit grey samples, row-major.
+    pub fn from_u8(width: usize, height: usize, values: &[u8]) -> Result<Self> {
+        Self::from_raw(width, height, width, PixelFormat::Mono8, values)
+    }
+
+    /// From 16-bit grey samples, row-major.
+    pub fn from_u16(width: usize, height: usize, values: &[u16]) -> Result<Self> {
+        check_size(width, height)?;
+        if values.len() != width * height {
+            return Err(Error::InvalidImage(format!(
+                "{} samples for a {width}x{height} image",
+                values.len()
+            )));
+        }
+        Ok(GreyImage {
+            width,
+            height,
+            pixels: values.iter().map(|&v| v as f32 / 65535.0).collect(),
+        })
+    }
+
+    /// Reads a PNG, JPEG, TIFF or PNM file (8/16-bit, grey, grey+alpha, RGB or RGBA).
+    pub fn open(path: impl AsRef<Path>) -> Result<Self> {
+        let path = path.as_ref();
+        let read_err = |reason: String| Error::ImageRead {
+            path: path.to_path_buf(),
+            reason,
+        };
+        let reader = image::ImageReader::open(path)
+            .map_err(|e| read_err(e.to_string()))?
+            .with_guessed_format()
+            .map_err(|e| read_err(e.to_string()))?;
+        let mut reader = reader;
+        reader.no_limits();
+        let decoded = reader.decode().map_err(|e| read_err(e.to_string()))?;
+        Self::from_dynamic(&decoded).map_err(|e| read_err(e.to_string()))
+    }
+
+    /// Converts a decoded `image` crate picture.
+    pub fn from_dynamic(decoded: &image::DynamicImage) -> Result<Self> {
+        use image::DynamicImage as D;
+        let (w, h) = (decoded.width() as usize, decoded.height() as usize);
+        check_size(w, h)?;
+        let pixels: Vec<f32> = match decoded {
+            D::ImageLuma8(i) => i.as_raw().iter().map(|&v| v as f32 / 255.0).collect(),
+            D::ImageLumaA8(i) => i.as_raw().chunks_exact(2).map(|p| p[0] as f32 / 255.0).collect(),
+            D::ImageRgb8(i) => i.as_raw().chunks_exact(3).map(|p| luma8(p[0], p[1], p[2])).collect(),
+            D::ImageRgba8(i) => i.as_raw().chunks_exact(4).map(|p| luma8(p[0], p[1], p[2])).collect(),
+            D::ImageLuma16(i) => i.as_raw().iter().map(|&v| v as f32 / 65535.0).collect(),
+            D::ImageLumaA16(i) => i.as_raw().chunks_exact(2).map(|p| p[0] as f32 / 65535.0).collect(),
+            D::ImageRgb16(i) => i.as_raw().chunks_exact(3).map(|p| luma16(p[0], p[1], p[2])).collect(),
+            D::ImageRgba16(i) => i.as_raw().chunks_exact(4).map(|p| luma16(p[0], p[1], p[2])).collect(),
+            other => other.to_luma32f().into_raw(),
+        };
+        Self::new(w, h, pixels)
+    }
+
+    /// Width `C`, pixels (columns).
+    pub fn width(&self) -> usize {
+        self.width
+    }
+    /// Height `R`, pixels (rows).
+    pub fn height(&self) -> usize {
+        self.height
+    }
+    /// Row-major pixel values.
+    pub fn pixels(&self) -> &[f32] {
+        &self.pixels
+    }
+    /// Mutable row-major pixel values.
+    pub fn pixels_mut(&mut self) -> &mut [f32] {
+        &mut self.pixels
+    }
+    /// Value at `(col, row)`, or `None` outside the image.
+    pub fn get(&self, col: usize, row: usize) -> Option<f32> {
+        (col < self.width && row < self.height).then(|| self.pixels[row * self.width + col])
+    }
+    /// The image centre pixel `(C div 2, R div 2)`: the origin of the camera frame.
+    pub fn center(&self) -> (usize, usize) {
+        (self.width / 2, self.height / 2)
+    }
+
+    /// `1 − value` for every pixel (turns dark dots into bright dots).
+    pub fn inverted(&self) -> GreyImage {
+        GreyImage {
+            width: self.width,
+            height: self.height,
+            pixels: self.pixels.iter().map(|v| 1.0 - v).collect(),
+        }
+    }
+
+    /// The image as the phase engine expects it for `polarity` (inverted for dark dots).
+    pub fn with_polarity(self, polarity: Polarity) -> GreyImage {
+        match polarity {
+            Polarity::BrightDots => self,
+            Polarity::DarkDots => self.inverted(),
+        }
+    }
+
+    /// The `width × height` window whose top-left pixel is `(col0, row0)`; parts outside the
+    /// image are filled with `fill`. Errors on a zero size.
+    pub fn window(&self, col0: i64, row0: i64, width: usize, height: usize, fill: f32) -> Result<GreyImage> {
+        check_size(width, height)?;
+        let mut pixels = vec![fill; width * height];
+        for r in 0..height {
+            let src_r = row0 + r as i64;
+            if src_r < 0 || src_r >= self.height as i64 {
+                continue;
+            }
+            let c_start = (-col0).clamp(0, width as i64) as usize;
+            let c_end = (self.width as i64 - col0).clamp(0, width as i64) as usize;
+            if c_start >= c_end {
+                continue;
+            }
+            let src = src_r as usize * self.width;
+            let (s0, s1) = ((col0 + c_start as i64) as usize, (col0 + c_end as i64) as usize);
+            pixels[r * width + c_start..r * width + c_end].copy_from_slice(&self.pixels[src + s0..src + s1]);
+        }
+        Ok(GreyImage { width, height, pixels })
+    }
+
+    /// The crop `[col0, col0+width) × [row0, row0+height)`, which must lie inside the image.
+    pub fn crop(&self, col0: usize, row0: usize, width: usize, height: usize) -> Result<GreyImage> {
+        if col0 + width > self.width || row0 + height > self.height {
+            return Err(Error::InvalidImage(format!(
+                "crop {width}x{height} at ({col0}, {row0}) exceeds the {}x{} image",
+                self.width, self.height
+            )));
+        }
+        self.window(col0 as i64, row0 as i64, width, height, 0.0)
+    }
+
+    /// Transposed image (rows become columns): `out(col = r, row = c) = in(col = c, row = r)`.
+    pub fn transposed(&self) -> GreyImage {
+        let (w, h) = (self.width, self.height);
+        let mut pixels = vec![0.0; w * h];
+        for r in 0..h {
+            for c in 0..w {
+                pixels[c * h + r] = self.pixels[r * w + c];
+            }
+        }
+        GreyImage { width: h, height: w, pixels }
+    }
+
+    /// Mirror image left–right: `out(col) = in(C − 1 − col)`.
+    pub fn flipped_horizontally(&self) -> GreyImage {
+        let mut pixels = self.pixels.clone();
+        for row in pixels.chunks_exact_mut(self.width) {
+            row.reverse();
+        }
+        GreyImage { pixels, ..*self }
+    }
+
+    /// Mirror image top–bottom: `out(row) = in(R − 1 − row)`.
+    pub fn flipped_vertically(&self) -> GreyImage {
+        let mut pixels = Vec::with_capacity(self.pixels.len());
+        for row in self.pixels.chunks_exact(self.width).rev() {
+            pixels.extend_from_slice(row);
+        }
+        GreyImage { pixels, ..*self }
+    }
+
+    /// Rotated by 90° clockwise on screen: `out(col = R−1−r, row = c) = in(col = c, row = r)`.
+    pub fn rotated_90_clockwise(&self) -> GreyImage {
+        self.transposed().flipped_horizontally()
+    }
+
+    /// Quantised samples `round(clamp(v, 0, 1)·(2^bits − 1))` for `bits` in 1..=16.
+    pub fn quantized(&self, bits: u32) -> Vec<u16> {
+        let max = ((1u32 << bits.clamp(1, 16)) - 1) as f32;
+        self.pixels.iter().map(|&v| (v.clamp(0.0, 1.0) * max).round() as u16).collect()
+    }
+
+    /// Writes a grey PNG: 8-bit when `bits ≤ 8`, else 16-bit with the `bits`-bit value scaled to
+    /// the full 16-bit range (a 12-bit image keeps 4096 distinct levels).
+    pub fn save_png(&self, path: impl AsRef<Path>, bits: u32) -> Result<()> {
+        let path = path.as_ref();
+        let write_err = |reason: String| Error::ImageWrite {
+            path: path.to_path_buf(),
+            reason,
+        };
+        let (w, h) = (self.width as u32, self.height as u32);
+        if bits <= 8 {
+            let data: Vec<u8> = self.quantized(bits).iter().map(|&v| (v as u32 * 255 / ((1 << bits) - 1)) as u8).collect();
+            image::GrayImage::from_raw(w, h, data)
+                .ok_or_else(|| write_err("buffer size".into()))?
+                .save(path)
+                .map_err(|e| write_err(e.to_string()))
+        } else {
+            let levels = ((1u32 << bits.min(16)) - 1) as f64;
+            let data: Vec<u16> = self
+                .quantized(bits)
+                .iter()
+                .map(|&v| (v as f64 * 65535.0 / levels).round() as u16)
+                .collect();
+            image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(w, h, data)
+                .ok_or_else(|| write_err("buffer size".into()))?
+                .save(path)
+                .map_err(|e| write_err(e.to_string()))
+        }
+    }
+}
+
+fn check_size(width: usize, height: usize) -> Result<()> {
+    if width == 0 || height == 0 {
+        return Err(Error::InvalidImage(format!("empty image ({width}x{height} pixels)")));
+    }
+    Ok(())
+}
+
+fn luma8(r: u8, g: u8, b: u8) -> f32 {
+    (LUMA_R * r as f32 + LUMA_G * g as f32 + LUMA_B * b as f32) / 255.0
+}
+
+fn luma16(r: u16, g: u16, b: u16) -> f32 {
+    (LUMA_R * r as f32 + LUMA_G * g as f32 + LUMA_B * b as f32) / 65535.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn raw_formats_and_errors() {
+        let img = GreyImage::from_raw(2, 1, 8, PixelFormat::Bgra8, &[0, 0, 255, 9, 255, 0, 0, 9]).unwrap();
+        assert!((img.pixels()[0] - 0.299).abs() < 1e-6 && (img.pixels()[1] - 0.114).abs() < 1e-6);
+        let img = GreyImage::from_raw(1, 2, 4, PixelFormat::Mono16 { big_endian: true }, &[0xff, 0xff, 0, 0, 0, 0, 0, 0]).unwrap();
+        assert_eq!(img.pixels(), &[1.0, 0.0]);
+        assert!(GreyImage::from_raw(2, 2, 2, PixelFormat::Mono8, &[0; 3]).is_err());
+        assert!(GreyImage::from_raw(2, 2, 1, PixelFormat::Mono8, &[0; 2]).is_err());
+        assert!(GreyImage::from_raw(0, 2, 0, PixelFormat::Mono8, &[]).is_err());
+        let e = GreyImage::new(2, 1, vec![0.0, f32::NAN]).unwrap_err().to_string();
+        assert!(e.contains("(1, 0)"), "{e}");
+    }
+
+    #[test]
+    fn geometric_transforms() {
+        let img = GreyImage::new(3, 2, vec![1., 2., 3., 4., 5., 6.]).unwrap();
+        assert_eq!(img.transposed().pixels(), &[1., 4., 2., 5., 3., 6.]);
+        assert_eq!(img.rotated_90_clockwise().pixels(), &[4., 1., 5., 2., 6., 3.]);
+        assert_eq!(img.flipped_vertically().pixels(), &[4., 5., 6., 1., 2., 3.]);
+        let w = img.window(-1, 1, 3, 2, 0.5).unwrap();
+        assert_eq!(w.pixels(), &[0.5, 4., 5., 0.5, 0.5, 0.5]);
+    }
+}

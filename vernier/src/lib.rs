@@ -1,0 +1,18 @@
+//! # vernier
+//!
+//! Sub-pixel pose measurement of micro-fabricated periodic dot markers in microscope images
+//! (a Rust successor of the VERNIER method, FEMTO-ST).
+pub mod error;
+pub mod layout;
+pub use error::{Error, Result};
+pub mod megarena_sequence;
+pub mod pattern_file;
+pub mod grey_image;
+pub mod phase;
+pub use grey_image::{GreyImage, PixelFormat, Polarity};
+pub use phase::{PhaseAnalysis, PhaseEngine, PhaseParams, PhasePlane};
+pub mod pose;
+pub mod render;
+pub use pose::Pose;
+pub mod periodic;
+pub use periodic::{PeriodicDetector, PeriodicParams};

@@ -1,0 +1,100 @@
+//! Detector of plain periodic dot grids (METHOD.md §4.8): the pose modulo one period and the
+//! grid's 90° symmetry.
+
+use crate::error::{Error, Result};
+use crate::grey_image::{GreyImage, Polarity};
+use crate::phase::{PhaseAnalysis, PhaseEngine, PhaseParams};
+use crate::pose::Pose;
+use nalgebra::Vector2;
+use std::f64::consts::TAU;
+
+/// Settings of [`PeriodicDetector`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct PeriodicParams {
+    /// Physical period `P` of the grid, pattern units (µm by convention). Must be > 0.
+    pub period: f64,
+    /// Dot polarity of the images.
+    pub polarity: Polarity,
+    /// Phase-engine settings.
+    pub phase: PhaseParams,
+}
+
+impl PeriodicParams {
+    /// Defaults for a grid of physical period `period` (pattern units).
+    pub fn new(period: f64) -> Self {
+        PeriodicParams {
+            period,
+            polarity: Polarity::BrightDots,
+            phase: PhaseParams::default(),
+        }
+    }
+}
+
+/// One periodic-grid measurement.
+#[derive(Clone, Debug)]
+pub struct PeriodicDetection {
+    /// Pose with `x, y ∈ [−P/2, P/2)` (pattern units) and `alpha ∈ [0, π/2)`: the grid is only
+    /// known modulo one period and a quarter turn.
+    pub pose: Pose,
+    /// Image position `(col, row)` of the grid node the pose refers to, pixels.
+    pub origin_px: Vector2<f64>,
+    /// Phase-engine output the pose was computed from.
+    pub analysis: PhaseAnalysis,
+}
+
+/// Measures the pose of a periodic grid filling the image. Keeps FFT plans between calls.
+pub struct PeriodicDetector {
+    params: PeriodicParams,
+    engine: PhaseEngine,
+}
+
+impl PeriodicDetector {
+    /// A detector with `params` (validated).
+    pub fn new(params: PeriodicParams) -> Result<Self> {
+        if !(params.period.is_finite() && params.period > 0.0) {
+            return Err(Error::parameter("period", format!("must be > 0, got {}", params.period)));
+        }
+        params.phase.validate()?;
+        Ok(PeriodicDetector {
+            params,
+            engine: PhaseEngine::new(),
+        })
+    }
+
+    /// Current settings.
+    pub fn params(&self) -> &PeriodicParams {
+        &self.params
+    }
+
+    /// Measures `image`.
+    pub fn detect(&mut self, image: &GreyImage) -> Result<PeriodicDetection> {
+        let inverted;
+        let image = match self.params.polarity {
+            Polarity::BrightDots => image,
+            Polarity::DarkDots => {
+                inverted = image.inverted();
+                &inverted
+            }
+        };
+        let analysis = self.engine.analyze(image, &self.params.phase)?;
+        let pose = periodic_pose(&analysis, self.params.period);
+        let (cx, cy) = image.center();
+        let origin_px = Vector2::new(cx as f64, cy as f64) + pose.origin_in_image();
+        Ok(PeriodicDetection {
+            pose,
+            origin_px,
+            analysis,
+        })
+    }
+}
+
+/// METHOD.md §4.8: pose from the two planes with zero period shifts.
+pub fn periodic_pose(analysis: &PhaseAnalysis, period: f64) -> Pose {
+    let [p1, p2] = analysis.planes;
+    Pose::planar(
+        -period * p1.c / TAU,
+        -period * p2.c / TAU,
+        p1.angle(),
+        period * p1.frequency() / TAU,
+    )
+}

@@ -1,0 +1,364 @@
+//! Windowed Gauss–Newton refinement of the two phase planes on the full-resolution image.
+//!
+//! The Gaussian band-pass of METHOD.md §4.4 lets neighbouring spectral content leak into each
+//! lobe (the other lobe's conjugate and the (1, ±1) harmonics sit one grid frequency away), which
+//! biases its plane by up to ~1e-3 px on small images with few periods. Here both planes are
+//! refined against the image itself: with the current planes `φ_l`, a windowed linear
+//! least-squares fit of
+//!
+//! `g(x, y) ≈ μ + Σ_l Re(A_l·(1 + i(δa_l·x + δb_l·y))·e^{iφ_l(x, y)})`
+//!
+//! gives the corrections `δc_l = arg A_l`, `δa_l`, `δb_l` in one linear solve (13 unknowns).
+//! Fitting the mean, both lobes and their conjugates jointly removes their mutual leakage
+//! exactly; what remains (harmonics) is attenuated by the window's sidelobes. The Gram matrix is
+//! separable (O(rows + cols)); the image enters through 4 dot products per lobe and row.
+//!
+//! Accuracy (noise-free renders, 7–15 px periods, 8–30 periods visible, tests/periodic_roundtrip.rs):
+//! < 1e-6 px on the band-limited raised-cosine profile; < 5e-5 px with sharp square dots seen
+//! through a 0.5 px optical blur; on perfectly sharp area-sampled dots the limit is the pixel
+//! aliasing of the dots' high harmonics (~7e-4 px, 1.2e-5 rad worst), which no estimator
+//! can separate from the fundamentals.
+
+use super::plane::PhasePlane;
+
+/// Refinement result for the two lobes.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Refined {
+    pub planes: [PhasePlane; 2],
+    /// Amplitude of each fundamental cosine, image intensity units.
+    pub amplitudes: [f64; 2],
+    /// Window-weighted variance of the image, intensity units².
+    pub variance: f64,
+    /// Window-weighted mean square residual of the fitted model, intensity units².
+    pub residual: f64,
+    /// Effective number of independent pixels under the window `(Σw)²/Σw²`.
+    pub effective_pixels: f64,
+    pub iterations: usize,
+}
+
+/// Sine-cubed window `sin³(π·i/(n − 1))` (Hann to the power 1.5) of `n` samples.
+///
+/// Chosen by measurement (tests/periodic_roundtrip.rs) against Hann, Blackman and 4-term
+/// Blackman–Harris: its sidelobes fall as 1/Δ⁴, so leakage of the harmonics is ~1e-7 px on
+/// band-limited renders, while its noise efficiency stays within 15 % of Hann's (Blackman–Harris
+/// costs 35 %).
+pub(crate) fn sine_cubed(n: usize) -> Vec<f64> {
+    if n == 1 {
+        return vec![1.0];
+    }
+    (0..n)
+        .map(|i| (std::f64::consts::PI * i as f64 / (n - 1) as f64).sin().powi(3))
+        .collect()
+}
+
+/// Reusable buffers of the refinement for one image size.
+pub(crate) struct RefinePlan {
+    rows: usize,
+    cols: usize,
+    wx: Vec<f64>,
+    wy: Vec<f64>,
+    /// Per lobe: re/im of `w(x)·e^{−iax}` and of `x·w(x)·e^{−iax}`, stored as 8 f32 rows.
+    kernels: Vec<f32>,
+}
+
+impl RefinePlan {
+    pub(crate) fn new(rows: usize, cols: usize) -> Self {
+        RefinePlan {
+            rows,
+            cols,
+            wx: sine_cubed(cols),
+            wy: sine_cubed(rows),
+            kernels: vec![0.0; 8 * cols],
+        }
+    }
+}
+
+/// Dot products of one image row with the 8 kernel rows (`kernels` is `8 × n`).
+#[inline(always)]
+fn row_dots_generic(row: &[f32], kernels: &[f32], n: usize) -> [f64; 8] {
+    const LANES: usize = 8;
+    let mut acc = [[0.0f32; LANES]; 8];
+    let chunks = n / LANES;
+    for chunk in 0..chunks {
+        let base = chunk * LANES;
+        let g: &[f32; LANES] = row[base..base + LANES].try_into().unwrap_or(&[0.0; LANES]);
+        for (k, acc_k) in acc.iter_mut().enumerate() {
+            let kern = &kernels[k * n + base..k * n + base + LANES];
+            for lane in 0..LANES {
+                acc_k[lane] += g[lane] * kern[lane];
+            }
+        }
+    }
+    let mut out = [0.0f64; 8];
+    for (k, acc_k) in acc.iter().enumerate() {
+        let mut s: f64 = acc_k.iter().map(|&v| v as f64).sum();
+        for x in chunks * LANES..n {
+            s += row[x] as f64 * kernels[k * n + x] as f64;
+        }
+        out[k] = s;
+    }
+    out
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn row_dots_avx2(row: &[f32], kernels: &[f32], n: usize) -> [f64; 8] {
+    row_dots_generic(row, kernels, n)
+}
+
+fn row_dots(row: &[f32], kernels: &[f32], n: usize) -> [f64; 8] {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: the required CPU features were just detected.
+            return unsafe { row_dots_avx2(row, kernels, n) };
+        }
+    }
+    row_dots_generic(row, kernels, n)
+}
+
+type Cplx = num_complex::Complex<f64>;
+
+/// Number of unknowns of the joint linear model: the mean, then per lobe the complex
+/// amplitude and its x and y gradients (2 real numbers each).
+const UNKNOWNS: usize = 13;
+
+/// Separable sums `Σ_x w(x)·x^p·e^{iαx}` (p = 0, 1, 2) for the seven phase combinations the
+/// Gram matrix needs: `n0·φ0 + n1·φ1` with `(n0, n1)` in [`COMBOS`].
+const COMBOS: [(i32, i32); 7] = [(0, 0), (1, 0), (0, 1), (2, 0), (0, 2), (1, 1), (1, -1)];
+
+struct CombinationSums {
+    x: [[Cplx; 3]; 7],
+    y: [[Cplx; 3]; 7],
+    offset: [f64; 7],
+}
+
+impl CombinationSums {
+    fn new(planes: &[PhasePlane; 2], wx: &[f64], xs: &[f64], wy: &[f64], ys: &[f64]) -> Self {
+        let axis = |w: &[f64], t: &[f64], freq: f64| {
+            let mut s = [Cplx::default(); 3];
+            for (wi, ti) in w.iter().zip(t) {
+                let e = Cplx::from_polar(*wi, freq * ti);
+                s[0] += e;
+                s[1] += e * ti;
+                s[2] += e * ti * ti;
+            }
+            s
+        };
+        let mut sums = CombinationSums {
+            x: [[Cplx::default(); 3]; 7],
+            y: [[Cplx::default(); 3]; 7],
+            offset: [0.0; 7],
+        };
+        for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
+            let (n0, n1) = (n0 as f64, n1 as f64);
+            sums.x[k] = axis(wx, xs, n0 * planes[0].a + n1 * planes[1].a);
+            sums.y[k] = axis(wy, ys, n0 * planes[0].b + n1 * planes[1].b);
+            sums.offset[k] = n0 * planes[0].c + n1 * planes[1].c;
+        }
+        sums
+    }
+
+    /// `Σ w(x, y)·x^px·y^py·e^{i(n0·φ0 + n1·φ1)}` over the image.
+    fn get(&self, (n0, n1): (i32, i32), px: usize, py: usize) -> Cplx {
+        for (k, &c) in COMBOS.iter().enumerate() {
+            if c == (n0, n1) || c == (-n0, -n1) {
+                let v = Cplx::from_polar(1.0, self.offset[k]) * self.x[k][px] * self.y[k][py];
+                return if c == (n0, n1) { v } else { v.conj() };
+            }
+        }
+        Cplx::default() // unreachable for the combinations used below
+    }
+}
+
+/// One non-constant basis function of the model: `p(x, y)·Re(z·e^{iφ_lobe})`.
+#[derive(Clone, Copy)]
+struct Basis {
+    lobe: usize,
+    /// Powers of x and y of the polynomial factor: (0, 0), (1, 0) or (0, 1).
+    px: usize,
+    py: usize,
+    /// 1 (cosine part) or i (minus sine part).
+    z: Cplx,
+}
+
+fn basis(j: usize) -> Basis {
+    let k = j - 1;
+    let (px, py) = [(0, 0), (1, 0), (0, 1)][(k % 6) / 2];
+    Basis {
+        lobe: k / 6,
+        px,
+        py,
+        z: if k % 2 == 0 { Cplx::new(1.0, 0.0) } else { Cplx::new(0.0, 1.0) },
+    }
+}
+
+fn unit(lobe: usize, sign: i32) -> (i32, i32) {
+    if lobe == 0 {
+        (sign, 0)
+    } else {
+        (0, sign)
+    }
+}
+
+/// Refines `planes` against `pixels` (row-major `rows × cols`), at most `max_iterations` steps.
+///
+/// Each step fits, by windowed linear least squares, the model
+/// `g ≈ μ + Σ_l Re(A_l·(1 + i(δa_l·x + δb_l·y))·e^{iφ_l})` — the mean, both lobes **and their
+/// conjugates** jointly, so that neither lobe leaks into the other (on elongated images the
+/// conjugate of one lobe can sit a few bins from the other). The Gram matrix is separable and
+/// costs O(rows + cols); the data enter through 4 dot products per lobe and image row.
+pub(crate) fn refine(
+    pixels: &[f32],
+    planes: [PhasePlane; 2],
+    plan: &mut RefinePlan,
+    max_iterations: usize,
+) -> Refined {
+    let (rows, cols) = (plan.rows, plan.cols);
+    let (cx, cy) = ((cols / 2) as f64, (rows / 2) as f64);
+    let xs: Vec<f64> = (0..cols).map(|i| i as f64 - cx).collect();
+    let ys: Vec<f64> = (0..rows).map(|j| j as f64 - cy).collect();
+    let sum_w: f64 = plan.wx.iter().sum::<f64>() * plan.wy.iter().sum::<f64>();
+    let sum_w2: f64 =
+        plan.wx.iter().map(|v| v * v).sum::<f64>() * plan.wy.iter().map(|v| v * v).sum::<f64>();
+
+    // Weighted sums of g and g² (constant over the iterations).
+    let (mut sum_g, mut sum_g2) = (0.0, 0.0);
+    for (j, row) in pixels.chunks_exact(cols).enumerate() {
+        let (mut a, mut b) = (0.0f64, 0.0f64);
+        for (&w, &g) in plan.wx.iter().zip(row) {
+            let wg = w * g as f64;
+            a += wg;
+            b += wg * g as f64;
+        }
+        sum_g += plan.wy[j] * a;
+        sum_g2 += plan.wy[j] * b;
+    }
+    let mean = sum_g / sum_w;
+    let variance = (sum_g2 / sum_w - mean * mean).max(0.0);
+
+    let mut planes = planes;
+    let mut amplitudes = [0.0; 2];
+    let mut residual = variance;
+    let mut iterations = 0;
+    for _ in 0..max_iterations {
+        iterations += 1;
+        // Kernel rows for both lobes: w·e^{−iax} (re, im) and x·w·e^{−iax} (re, im).
+        for (l, plane) in planes.iter().enumerate() {
+            for x in 0..cols {
+                let e = Cplx::from_polar(plan.wx[x], -plane.a * xs[x]);
+                let ex = e * xs[x];
+                plan.kernels[(4 * l) * cols + x] = e.re as f32;
+                plan.kernels[(4 * l + 1) * cols + x] = e.im as f32;
+                plan.kernels[(4 * l + 2) * cols + x] = ex.re as f32;
+                plan.kernels[(4 * l + 3) * cols + x] = ex.im as f32;
+            }
+        }
+        // Data moments M[l][p] = Σ w·g·p·e^{−iφ_l}, p ∈ {1, x, y}.
+        let mut m = [[Cplx::default(); 3]; 2];
+        for (j, row) in pixels.chunks_exact(cols).enumerate() {
+            let d = row_dots(row, &plan.kernels, cols);
+            for (l, plane) in planes.iter().enumerate() {
+                let f = Cplx::from_polar(plan.wy[j], -plane.b * ys[j]);
+                let s0 = Cplx::new(d[4 * l], d[4 * l + 1]);
+                let s1 = Cplx::new(d[4 * l + 2], d[4 * l + 3]);
+                m[l][0] += f * s0;
+                m[l][1] += f * s1;
+                m[l][2] += f * s0 * ys[j];
+            }
+        }
+        for (l, plane) in planes.iter().enumerate() {
+            let phase_c = Cplx::from_polar(1.0, -plane.c);
+            for v in m[l].iter_mut() {
+                *v *= phase_c;
+            }
+        }
+        // Normal equations G·θ = r of the linear model.
+        let sums = CombinationSums::new(&planes, &plan.wx, &xs, &plan.wy, &ys);
+        let mut gram = nalgebra::SMatrix::<f64, UNKNOWNS, UNKNOWNS>::zeros();
+        let mut rhs = nalgebra::SVector::<f64, UNKNOWNS>::zeros();
+        gram[(0, 0)] = sum_w;
+        rhs[0] = sum_g;
+        for j in 1..UNKNOWNS {
+            let bj = basis(j);
+            let v = bj.z * sums.get(unit(bj.lobe, 1), bj.px, bj.py);
+            gram[(0, j)] = v.re;
+            gram[(j, 0)] = v.re;
+            // Σ w·g·p·Re(z·e^{iφ}) = Re(z·conj(M)).
+            rhs[j] = (bj.z * m[bj.lobe][bj.px + 2 * bj.py].conj()).re;
+            for k in j..UNKNOWNS {
+                let bk = basis(k);
+                let (px, py) = (bj.px + bk.px, bj.py + bk.py);
+                let (u, v) = (unit(bj.lobe, 1), unit(bk.lobe, 1));
+                let same = sums.get((u.0 + v.0, u.1 + v.1), px, py);
+                let opposite = sums.get((u.0 - v.0, u.1 - v.1), px, py);
+                // Re(a)·Re(b) = (Re(ab) + Re(a·conj b))/2.
+                let g = 0.5 * (bj.z * bk.z * same).re + 0.5 * (bj.z * bk.z.conj() * opposite).re;
+                gram[(j, k)] = g;
+                gram[(k, j)] = g;
+            }
+        }
+        let Some(theta) = gram.lu().solve(&rhs) else {
+            break;
+        };
+        residual = ((sum_g2 - theta.dot(&rhs)) / sum_w).max(0.0);
+        let mut largest_step: f64 = 0.0;
+        let extent = cols.max(rows) as f64;
+        for (l, plane) in planes.iter_mut().enumerate() {
+            let at = |k: usize| Cplx::new(theta[1 + 6 * l + 2 * k], theta[2 + 6 * l + 2 * k]);
+            let (amp, grad_x, grad_y) = (at(0), at(1), at(2));
+            if !(amp.norm() > 0.0 && amp.norm().is_finite()) {
+                continue;
+            }
+            let (dc, da, db) = (amp.arg(), (grad_x / amp).im, (grad_y / amp).im);
+            plane.a += da;
+            plane.b += db;
+            plane.c += dc;
+            amplitudes[l] = amp.norm();
+            largest_step = largest_step.max(dc.abs()).max(da.abs() * extent).max(db.abs() * extent);
+        }
+        if largest_step < 1e-8 {
+            break;
+        }
+    }
+    Refined {
+        planes: planes.map(|p| p.with_wrapped_offset()),
+        amplitudes,
+        variance,
+        residual,
+        effective_pixels: sum_w * sum_w / sum_w2,
+        iterations,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn recovers_pure_cosines() {
+        let (rows, cols) = (64usize, 70usize);
+        let truth = [
+            PhasePlane { a: 0.61, b: 0.13, c: 0.4 },
+            PhasePlane { a: -0.13, b: 0.61, c: -1.2 },
+        ];
+        let (cx, cy) = ((cols / 2) as f64, (rows / 2) as f64);
+        let pixels: Vec<f32> = (0..rows * cols)
+            .map(|k| {
+                let (x, y) = ((k % cols) as f64 - cx, (k / cols) as f64 - cy);
+                (0.5 + 0.2 * truth[0].at(x, y).cos() + 0.2 * truth[1].at(x, y).cos()) as f32
+            })
+            .collect();
+        let start = [
+            PhasePlane { a: 0.6, b: 0.135, c: 0.3 },
+            PhasePlane { a: -0.125, b: 0.62, c: -1.1 },
+        ];
+        let mut plan = RefinePlan::new(rows, cols);
+        let r = refine(&pixels, start, &mut plan, 6);
+        for (p, t) in r.planes.iter().zip(&truth) {
+            assert!((p.a - t.a).abs() < 1e-6 && (p.b - t.b).abs() < 1e-6, "{p:?} vs {t:?}");
+            assert!((p.c - t.c).abs() < 1e-5, "{p:?} vs {t:?}");
+        }
+        assert!((r.amplitudes[0] - 0.2).abs() < 1e-3);
+    }
+}
