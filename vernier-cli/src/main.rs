@@ -1,1 +1,291 @@
-fn main(){}
+//! `vernier`: detect markers in image files, render synthetic images.
+//!
+//! Every failure prints one line `vernier: <what went wrong>` on stderr and exits non-zero.
+
+use clap::{Parser, Subcommand, ValueEnum};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+use vernier::detector::{DetectorSettings, MarkerKind};
+use vernier::pattern_file::Pattern;
+use vernier::render::{render, RenderOptions, Sampling};
+use vernier::{Detector, GreyImage, MarkerPose, Polarity, Pose};
+
+#[derive(Parser)]
+#[command(
+    name = "vernier",
+    version,
+    about = "Sub-pixel pose of periodic dot markers in microscope images"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Detect markers in image files and print their poses.
+    Detect(DetectArgs),
+    /// Render a synthetic image of a pattern at a known pose.
+    Render(RenderArgs),
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Format {
+    /// One JSON object per image.
+    Json,
+    /// One CSV row per image and marker.
+    Csv,
+}
+
+#[derive(Parser)]
+struct DetectArgs {
+    /// JSON pattern file describing the marker (PeriodicPattern, HPCodePattern, ...).
+    #[arg(long)]
+    pattern: Option<PathBuf>,
+    /// Marker type when no pattern file is given: periodic, hpcode, stamp or megarena.
+    #[arg(long = "type", default_value = "periodic")]
+    marker_type: MarkerKind,
+    /// Shorthand for `--type hpcode`.
+    #[arg(long)]
+    hpcode: bool,
+    /// Shorthand for `--type megarena`.
+    #[arg(long)]
+    megarena: bool,
+    /// Shorthand for `--type stamp`.
+    #[arg(long)]
+    stamp: bool,
+    /// Physical period of the dot grid, pattern units (µm by convention).
+    #[arg(long)]
+    period: Option<f64>,
+    /// HP code width in half-period cells (33, 37, ...).
+    #[arg(long)]
+    code_size: Option<usize>,
+    /// Megarena LFSR bit depth (4–12).
+    #[arg(long)]
+    code_depth: Option<u32>,
+    /// Side of the window analysed around each marker, pixels.
+    #[arg(long)]
+    window_size: Option<usize>,
+    /// Stamp bitmap PNG files (1 = dot), in ID order; repeat the flag for several.
+    #[arg(long)]
+    bitmap: Vec<PathBuf>,
+    /// Output format.
+    #[arg(long, value_enum, default_value = "json")]
+    format: Format,
+    /// Dot polarity: `bright` dots on a dark background or `dark` dots on a bright one.
+    #[arg(long, default_value = "bright")]
+    polarity: Polarity,
+    /// Image files (PNG, JPEG, TIFF, PNM; 8/16-bit grey or colour).
+    #[arg(required = true)]
+    images: Vec<PathBuf>,
+}
+
+#[derive(Parser)]
+struct RenderArgs {
+    /// JSON pattern file.
+    #[arg(long)]
+    pattern: PathBuf,
+    /// Pose `x,y,alpha`: pattern units and radians (METHOD.md §6 frames).
+    #[arg(long, allow_hyphen_values = true)]
+    pose: String,
+    /// Pattern units per pixel.
+    #[arg(long)]
+    pixel_size: f64,
+    /// Image size `WIDTHxHEIGHT` in pixels.
+    #[arg(long)]
+    size: String,
+    /// Gaussian optical blur σ, pixels (applied before pixel integration).
+    #[arg(long, default_value_t = 0.0)]
+    blur: f64,
+    /// Additive Gaussian noise σ, fraction of full scale (0.01 = 1 %).
+    #[arg(long, default_value_t = 0.0)]
+    noise: f64,
+    /// Output bit depth: 8, 12 or 16 (12-bit is stored in a 16-bit PNG).
+    #[arg(long, default_value_t = 8)]
+    bits: u32,
+    /// Noise seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Point-sample the analytic intensity (original renderer) instead of area-sampling dots.
+    #[arg(long)]
+    point: bool,
+    /// Output PNG file.
+    output: PathBuf,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Detect(args) => detect(&args),
+        Command::Render(args) => render_image(&args),
+    };
+    match result {
+        Ok(code) => code,
+        Err(message) => {
+            eprintln!("vernier: {message}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn load_pattern(path: &Path) -> Result<Pattern, String> {
+    Pattern::from_file(path).map_err(|e| e.to_string())
+}
+
+fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
+    let pattern_type = if args.hpcode {
+        MarkerKind::HpCode
+    } else if args.megarena {
+        MarkerKind::Megarena
+    } else if args.stamp {
+        MarkerKind::Stamp
+    } else {
+        args.marker_type
+    };
+    let settings = DetectorSettings {
+        pattern_type,
+        pattern_file: args.pattern.clone(),
+        period: args.period,
+        code_size: args.code_size,
+        code_depth: args.code_depth,
+        window_size: args.window_size,
+        polarity: args.polarity,
+        bitmaps: args.bitmap.clone(),
+    };
+    let config = settings.to_config().map_err(|e| e.to_string())?;
+    let mut detector = Detector::new(config).map_err(|e| e.to_string())?;
+    let mut failures = 0usize;
+    if let Format::Csv = args.format {
+        println!("image,id,x,y,z,alpha,beta,gamma,pixel_size,x_px,y_px,quality,time_ms,error");
+    }
+    for path in &args.images {
+        let start = Instant::now();
+        let result = GreyImage::open(path).and_then(|image| detector.detect(&image));
+        let time_ms = start.elapsed().as_secs_f64() * 1e3;
+        if let Err(e) = &result {
+            eprintln!("vernier: {}: {e}", path.display());
+            failures += 1;
+        }
+        match args.format {
+            Format::Json => println!("{}", json_line(path, &result, time_ms)),
+            Format::Csv => print_csv(path, &result, time_ms),
+        }
+    }
+    Ok(if failures == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}
+
+fn marker_json(m: &MarkerPose) -> serde_json::Value {
+    serde_json::json!({
+        "id": m.id,
+        "x": m.pose.x, "y": m.pose.y, "z": m.pose.z,
+        "alpha": m.pose.alpha, "beta": m.pose.beta, "gamma": m.pose.gamma,
+        "pixel_size": m.pose.pixel_size,
+        "x_px": m.origin_px.x, "y_px": m.origin_px.y,
+        "quality": m.quality,
+        "duplicate_id": m.duplicate_id,
+    })
+}
+
+fn json_line(path: &Path, result: &vernier::Result<Vec<MarkerPose>>, time_ms: f64) -> String {
+    let mut object = serde_json::json!({
+        "image": path.display().to_string(),
+        "markers": result.as_ref().map(|ms| ms.iter().map(marker_json).collect::<Vec<_>>()).unwrap_or_default(),
+        "time_ms": time_ms,
+    });
+    if let Err(e) = result {
+        object["error"] = serde_json::Value::String(e.to_string());
+    }
+    object.to_string()
+}
+
+fn csv_field(s: &str) -> String {
+    if s.contains([',', '"', '\n']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
+
+fn print_csv(path: &Path, result: &vernier::Result<Vec<MarkerPose>>, time_ms: f64) {
+    let image = csv_field(&path.display().to_string());
+    match result {
+        Ok(markers) => {
+            for m in markers {
+                let p = &m.pose;
+                println!(
+                    "{image},{},{},{},{},{},{},{},{},{},{},{},{time_ms:.3},",
+                    m.id,
+                    p.x,
+                    p.y,
+                    p.z,
+                    p.alpha,
+                    p.beta,
+                    p.gamma,
+                    p.pixel_size,
+                    m.origin_px.x,
+                    m.origin_px.y,
+                    m.quality
+                );
+            }
+        }
+        Err(e) => println!(
+            "{image},,,,,,,,,,,,{time_ms:.3},{}",
+            csv_field(&e.to_string())
+        ),
+    }
+}
+
+fn parse_numbers(
+    text: &str,
+    what: &str,
+    separator: char,
+    count: usize,
+) -> Result<Vec<f64>, String> {
+    let values: Result<Vec<f64>, _> = text
+        .split(separator)
+        .map(|v| v.trim().parse::<f64>())
+        .collect();
+    match values {
+        Ok(v) if v.len() == count && v.iter().all(|x| x.is_finite()) => Ok(v),
+        _ => Err(format!(
+            "--{what} expects {count} numbers separated by `{separator}`, got `{text}`"
+        )),
+    }
+}
+
+fn render_image(args: &RenderArgs) -> Result<ExitCode, String> {
+    let pattern = load_pattern(&args.pattern)?;
+    let pose = parse_numbers(&args.pose, "pose", ',', 3)?;
+    let size = parse_numbers(&args.size, "size", 'x', 2)?;
+    if size
+        .iter()
+        .any(|&v| v < 1.0 || v.fract() != 0.0 || v > 65536.0)
+    {
+        return Err(format!(
+            "--size expects positive integers WIDTHxHEIGHT, got `{}`",
+            args.size
+        ));
+    }
+    if ![8, 12, 16].contains(&args.bits) {
+        return Err(format!("--bits must be 8, 12 or 16, got {}", args.bits));
+    }
+    let mut options = RenderOptions::new(size[0] as usize, size[1] as usize);
+    options.blur_sigma = args.blur;
+    options.noise_std = args.noise;
+    options.bit_depth = Some(args.bits);
+    options.seed = args.seed;
+    if args.point {
+        options.sampling = Sampling::Point;
+    }
+    let pose = Pose::planar(pose[0], pose[1], pose[2], args.pixel_size);
+    let image = render(pattern.layout(), &pose, &options).map_err(|e| e.to_string())?;
+    image
+        .save_png(&args.output, args.bits)
+        .map_err(|e| e.to_string())?;
+    Ok(ExitCode::SUCCESS)
+}

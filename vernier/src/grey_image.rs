@@ -26,7 +26,10 @@ impl std::str::FromStr for Polarity {
         match s {
             "bright" | "bright_dots" => Ok(Polarity::BrightDots),
             "dark" | "dark_dots" => Ok(Polarity::DarkDots),
-            other => Err(Error::parameter("polarity", format!("expected `bright` or `dark`, got `{other}`"))),
+            other => Err(Error::parameter(
+                "polarity",
+                format!("expected `bright` or `dark`, got `{other}`"),
+            )),
         }
     }
 }
@@ -107,7 +110,11 @@ impl GreyImage {
                 pixels[i]
             )));
         }
-        Ok(GreyImage { width, height, pixels })
+        Ok(GreyImage {
+            width,
+            height,
+            pixels,
+        })
     }
 
     /// From `f64` samples (used as is, like the original's double arrays).
@@ -116,14 +123,22 @@ impl GreyImage {
     }
 
     /// From a raw buffer whose rows are `step` bytes apart (`step ≥ width·bytes_per_pixel`).
-    pub fn from_raw(width: usize, height: usize, step: usize, format: PixelFormat, data: &[u8]) -> Result<Self> {
+    pub fn from_raw(
+        width: usize,
+        height: usize,
+        step: usize,
+        format: PixelFormat,
+        data: &[u8],
+    ) -> Result<Self> {
         check_size(width, height)?;
         let bpp = format.bytes_per_pixel();
         let row_bytes = width
             .checked_mul(bpp)
             .ok_or_else(|| Error::InvalidImage("image width overflows".into()))?;
         if step < row_bytes {
-            return Err(Error::InvalidImage(format!("row step {step} bytes is shorter than a row ({row_bytes} bytes)")));
+            return Err(Error::InvalidImage(format!(
+                "row step {step} bytes is shorter than a row ({row_bytes} bytes)"
+            )));
         }
         let needed = step
             .checked_mul(height)
@@ -140,14 +155,26 @@ impl GreyImage {
             match format {
                 PixelFormat::Mono8 => pixels.extend(row.iter().map(|&v| v as f32 / 255.0)),
                 PixelFormat::Mono16 { big_endian } => pixels.extend(row.chunks_exact(2).map(|b| {
-                    let v = if big_endian { u16::from_be_bytes([b[0], b[1]]) } else { u16::from_le_bytes([b[0], b[1]]) };
+                    let v = if big_endian {
+                        u16::from_be_bytes([b[0], b[1]])
+                    } else {
+                        u16::from_le_bytes([b[0], b[1]])
+                    };
                     v as f32 / 65535.0
                 })),
-                PixelFormat::Rgb8 | PixelFormat::Rgba8 => pixels.extend(row.chunks_exact(bpp).map(|p| luma8(p[0], p[1], p[2]))),
-                PixelFormat::Bgr8 | PixelFormat::Bgra8 => pixels.extend(row.chunks_exact(bpp).map(|p| luma8(p[2], p[1], p[0]))),
+                PixelFormat::Rgb8 | PixelFormat::Rgba8 => {
+                    pixels.extend(row.chunks_exact(bpp).map(|p| luma8(p[0], p[1], p[2])))
+                }
+                PixelFormat::Bgr8 | PixelFormat::Bgra8 => {
+                    pixels.extend(row.chunks_exact(bpp).map(|p| luma8(p[2], p[1], p[0])))
+                }
             }
         }
-        Ok(GreyImage { width, height, pixels })
+        Ok(GreyImage {
+            width,
+            height,
+            pixels,
+        })
     }
 
     /// From 8-bit grey samples, row-major.
@@ -195,13 +222,37 @@ impl GreyImage {
         check_size(w, h)?;
         let pixels: Vec<f32> = match decoded {
             D::ImageLuma8(i) => i.as_raw().iter().map(|&v| v as f32 / 255.0).collect(),
-            D::ImageLumaA8(i) => i.as_raw().chunks_exact(2).map(|p| p[0] as f32 / 255.0).collect(),
-            D::ImageRgb8(i) => i.as_raw().chunks_exact(3).map(|p| luma8(p[0], p[1], p[2])).collect(),
-            D::ImageRgba8(i) => i.as_raw().chunks_exact(4).map(|p| luma8(p[0], p[1], p[2])).collect(),
+            D::ImageLumaA8(i) => i
+                .as_raw()
+                .chunks_exact(2)
+                .map(|p| p[0] as f32 / 255.0)
+                .collect(),
+            D::ImageRgb8(i) => i
+                .as_raw()
+                .chunks_exact(3)
+                .map(|p| luma8(p[0], p[1], p[2]))
+                .collect(),
+            D::ImageRgba8(i) => i
+                .as_raw()
+                .chunks_exact(4)
+                .map(|p| luma8(p[0], p[1], p[2]))
+                .collect(),
             D::ImageLuma16(i) => i.as_raw().iter().map(|&v| v as f32 / 65535.0).collect(),
-            D::ImageLumaA16(i) => i.as_raw().chunks_exact(2).map(|p| p[0] as f32 / 65535.0).collect(),
-            D::ImageRgb16(i) => i.as_raw().chunks_exact(3).map(|p| luma16(p[0], p[1], p[2])).collect(),
-            D::ImageRgba16(i) => i.as_raw().chunks_exact(4).map(|p| luma16(p[0], p[1], p[2])).collect(),
+            D::ImageLumaA16(i) => i
+                .as_raw()
+                .chunks_exact(2)
+                .map(|p| p[0] as f32 / 65535.0)
+                .collect(),
+            D::ImageRgb16(i) => i
+                .as_raw()
+                .chunks_exact(3)
+                .map(|p| luma16(p[0], p[1], p[2]))
+                .collect(),
+            D::ImageRgba16(i) => i
+                .as_raw()
+                .chunks_exact(4)
+                .map(|p| luma16(p[0], p[1], p[2]))
+                .collect(),
             other => other.to_luma32f().into_raw(),
         };
         Self::new(w, h, pixels)
@@ -251,7 +302,14 @@ impl GreyImage {
 
     /// The `width × height` window whose top-left pixel is `(col0, row0)`; parts outside the
     /// image are filled with `fill`. Errors on a zero size.
-    pub fn window(&self, col0: i64, row0: i64, width: usize, height: usize, fill: f32) -> Result<GreyImage> {
+    pub fn window(
+        &self,
+        col0: i64,
+        row0: i64,
+        width: usize,
+        height: usize,
+        fill: f32,
+    ) -> Result<GreyImage> {
         check_size(width, height)?;
         let mut pixels = vec![fill; width * height];
         for r in 0..height {
@@ -265,10 +323,18 @@ impl GreyImage {
                 continue;
             }
             let src = src_r as usize * self.width;
-            let (s0, s1) = ((col0 + c_start as i64) as usize, (col0 + c_end as i64) as usize);
-            pixels[r * width + c_start..r * width + c_end].copy_from_slice(&self.pixels[src + s0..src + s1]);
+            let (s0, s1) = (
+                (col0 + c_start as i64) as usize,
+                (col0 + c_end as i64) as usize,
+            );
+            pixels[r * width + c_start..r * width + c_end]
+                .copy_from_slice(&self.pixels[src + s0..src + s1]);
         }
-        Ok(GreyImage { width, height, pixels })
+        Ok(GreyImage {
+            width,
+            height,
+            pixels,
+        })
     }
 
     /// The crop `[col0, col0+width) × [row0, row0+height)`, which must lie inside the image.
@@ -291,7 +357,11 @@ impl GreyImage {
                 pixels[c * h + r] = self.pixels[r * w + c];
             }
         }
-        GreyImage { width: h, height: w, pixels }
+        GreyImage {
+            width: h,
+            height: w,
+            pixels,
+        }
     }
 
     /// Mirror image left–right: `out(col) = in(C − 1 − col)`.
@@ -320,7 +390,10 @@ impl GreyImage {
     /// Quantised samples `round(clamp(v, 0, 1)·(2^bits − 1))` for `bits` in 1..=16.
     pub fn quantized(&self, bits: u32) -> Vec<u16> {
         let max = ((1u32 << bits.clamp(1, 16)) - 1) as f32;
-        self.pixels.iter().map(|&v| (v.clamp(0.0, 1.0) * max).round() as u16).collect()
+        self.pixels
+            .iter()
+            .map(|&v| (v.clamp(0.0, 1.0) * max).round() as u16)
+            .collect()
     }
 
     /// Writes a grey PNG: 8-bit when `bits ≤ 8`, else 16-bit with the `bits`-bit value scaled to
@@ -333,7 +406,11 @@ impl GreyImage {
         };
         let (w, h) = (self.width as u32, self.height as u32);
         if bits <= 8 {
-            let data: Vec<u8> = self.quantized(bits).iter().map(|&v| (v as u32 * 255 / ((1 << bits) - 1)) as u8).collect();
+            let data: Vec<u8> = self
+                .quantized(bits)
+                .iter()
+                .map(|&v| (v as u32 * 255 / ((1 << bits) - 1)) as u8)
+                .collect();
             image::GrayImage::from_raw(w, h, data)
                 .ok_or_else(|| write_err("buffer size".into()))?
                 .save(path)
@@ -355,7 +432,9 @@ impl GreyImage {
 
 fn check_size(width: usize, height: usize) -> Result<()> {
     if width == 0 || height == 0 {
-        return Err(Error::InvalidImage(format!("empty image ({width}x{height} pixels)")));
+        return Err(Error::InvalidImage(format!(
+            "empty image ({width}x{height} pixels)"
+        )));
     }
     Ok(())
 }
@@ -374,14 +453,24 @@ mod tests {
 
     #[test]
     fn raw_formats_and_errors() {
-        let img = GreyImage::from_raw(2, 1, 8, PixelFormat::Bgra8, &[0, 0, 255, 9, 255, 0, 0, 9]).unwrap();
+        let img = GreyImage::from_raw(2, 1, 8, PixelFormat::Bgra8, &[0, 0, 255, 9, 255, 0, 0, 9])
+            .unwrap();
         assert!((img.pixels()[0] - 0.299).abs() < 1e-6 && (img.pixels()[1] - 0.114).abs() < 1e-6);
-        let img = GreyImage::from_raw(1, 2, 4, PixelFormat::Mono16 { big_endian: true }, &[0xff, 0xff, 0, 0, 0, 0, 0, 0]).unwrap();
+        let img = GreyImage::from_raw(
+            1,
+            2,
+            4,
+            PixelFormat::Mono16 { big_endian: true },
+            &[0xff, 0xff, 0, 0, 0, 0, 0, 0],
+        )
+        .unwrap();
         assert_eq!(img.pixels(), &[1.0, 0.0]);
         assert!(GreyImage::from_raw(2, 2, 2, PixelFormat::Mono8, &[0; 3]).is_err());
         assert!(GreyImage::from_raw(2, 2, 1, PixelFormat::Mono8, &[0; 2]).is_err());
         assert!(GreyImage::from_raw(0, 2, 0, PixelFormat::Mono8, &[]).is_err());
-        let e = GreyImage::new(2, 1, vec![0.0, f32::NAN]).unwrap_err().to_string();
+        let e = GreyImage::new(2, 1, vec![0.0, f32::NAN])
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("(1, 0)"), "{e}");
     }
 
@@ -389,7 +478,10 @@ mod tests {
     fn geometric_transforms() {
         let img = GreyImage::new(3, 2, vec![1., 2., 3., 4., 5., 6.]).unwrap();
         assert_eq!(img.transposed().pixels(), &[1., 4., 2., 5., 3., 6.]);
-        assert_eq!(img.rotated_90_clockwise().pixels(), &[4., 1., 5., 2., 6., 3.]);
+        assert_eq!(
+            img.rotated_90_clockwise().pixels(),
+            &[4., 1., 5., 2., 6., 3.]
+        );
         assert_eq!(img.flipped_vertically().pixels(), &[4., 5., 6., 1., 2., 3.]);
         let w = img.window(-1, 1, 3, 2, 0.5).unwrap();
         assert_eq!(w.pixels(), &[0.5, 4., 5., 0.5, 0.5, 0.5]);

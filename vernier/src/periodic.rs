@@ -52,7 +52,10 @@ impl PeriodicDetector {
     /// A detector with `params` (validated).
     pub fn new(params: PeriodicParams) -> Result<Self> {
         if !(params.period.is_finite() && params.period > 0.0) {
-            return Err(Error::parameter("period", format!("must be > 0, got {}", params.period)));
+            return Err(Error::parameter(
+                "period",
+                format!("must be > 0, got {}", params.period),
+            ));
         }
         params.phase.validate()?;
         Ok(PeriodicDetector {

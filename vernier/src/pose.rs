@@ -66,7 +66,8 @@ impl Pose {
     /// `cTp`: maps pattern-frame points to camera-frame points (pattern units).
     pub fn camera_from_pattern(&self) -> Isometry3<f64> {
         let rotation = self.rotation();
-        let translation = Vector3::new(0.0, 0.0, self.z) + rotation * Vector3::new(self.x, self.y, 0.0);
+        let translation =
+            Vector3::new(0.0, 0.0, self.z) + rotation * Vector3::new(self.x, self.y, 0.0);
         Isometry3::from_parts(
             Translation3::from(translation),
             UnitQuaternion::from_rotation_matrix(&rotation),
@@ -89,7 +90,10 @@ impl Pose {
     /// whose centre pixel is `center` (orthographic projection).
     pub fn project(&self, p: Point2<f64>, center: Point2<f64>) -> Point2<f64> {
         let c = self.camera_from_pattern() * nalgebra::Point3::new(p.x, p.y, 0.0);
-        Point2::new(center.x + c.x / self.pixel_size, center.y + c.y / self.pixel_size)
+        Point2::new(
+            center.x + c.x / self.pixel_size,
+            center.y + c.y / self.pixel_size,
+        )
     }
 
     /// The same pose with lengths multiplied by `factor` (`x, y, z, pixel_size`), e.g. `1e-6` to
@@ -140,11 +144,29 @@ mod tests {
             pixel_size: 1.0,
         };
         let m = pose.camera_from_pattern().to_homogeneous();
-        let row0 = [0.936293363584199, -0.295773602360636, -0.189400933088512, -0.985265920086491];
-        let row2 = [0.295520206661340, 0.372025551942260, 0.879923176281257, 3.292882930850542];
+        let row0 = [
+            0.936293363584199,
+            -0.295773602360636,
+            -0.189400933088512,
+            -0.985265920086491,
+        ];
+        let row2 = [
+            0.295520206661340,
+            0.372025551942260,
+            0.879923176281257,
+            3.292882930850542,
+        ];
         for j in 0..4 {
-            assert!((m[(0, j)] - row0[j]).abs() < 1e-12, "row 0 col {j}: {}", m[(0, j)]);
-            assert!((m[(2, j)] - row2[j]).abs() < 1e-12, "row 2 col {j}: {}", m[(2, j)]);
+            assert!(
+                (m[(0, j)] - row0[j]).abs() < 1e-12,
+                "row 0 col {j}: {}",
+                m[(0, j)]
+            );
+            assert!(
+                (m[(2, j)] - row2[j]).abs() < 1e-12,
+                "row 2 col {j}: {}",
+                m[(2, j)]
+            );
         }
         let (rvec, tvec) = Pose::planar(3.0, 5.0, 0.2, 1.0).rvec_tvec();
         assert!((rvec - Vector3::new(0.0, 0.0, 0.2)).norm() < 1e-12);

@@ -76,22 +76,38 @@ pub fn render(layout: &dyn Layout, pose: &Pose, options: &RenderOptions) -> Resu
 pub fn render_scene(items: &[(&dyn Layout, Pose)], options: &RenderOptions) -> Result<GreyImage> {
     let (w, h) = (options.width, options.height);
     if w == 0 || h == 0 {
-        return Err(Error::parameter("size", format!("render size must be positive, got {w}x{h}")));
+        return Err(Error::parameter(
+            "size",
+            format!("render size must be positive, got {w}x{h}"),
+        ));
     }
     if let Some(bits) = options.bit_depth {
         if !(1..=16).contains(&bits) {
-            return Err(Error::parameter("bit_depth", format!("must be in 1..=16, got {bits}")));
+            return Err(Error::parameter(
+                "bit_depth",
+                format!("must be in 1..=16, got {bits}"),
+            ));
         }
     }
     if !(options.blur_sigma >= 0.0 && options.blur_sigma.is_finite()) {
-        return Err(Error::parameter("blur_sigma", format!("must be ≥ 0, got {}", options.blur_sigma)));
+        return Err(Error::parameter(
+            "blur_sigma",
+            format!("must be ≥ 0, got {}", options.blur_sigma),
+        ));
     }
     if !(options.noise_std >= 0.0 && options.noise_std.is_finite()) {
-        return Err(Error::parameter("noise_std", format!("must be ≥ 0, got {}", options.noise_std)));
+        return Err(Error::parameter(
+            "noise_std",
+            format!("must be ≥ 0, got {}", options.noise_std),
+        ));
     }
     // Optical blur acts before the pixels integrate light: render on a grid `SUPERSAMPLING`
     // times finer, blur there, then bin back to pixels (box = pixel area).
-    let factor = if options.blur_sigma > 0.0 { SUPERSAMPLING } else { 1 };
+    let factor = if options.blur_sigma > 0.0 {
+        SUPERSAMPLING
+    } else {
+        1
+    };
     let (fw, fh) = (w * factor, h * factor);
     let mut coverage = vec![0.0f32; fw * fh];
     for (layout, pose) in items {
@@ -102,18 +118,30 @@ pub fn render_scene(items: &[(&dyn Layout, Pose)], options: &RenderOptions) -> R
             ..*pose
         };
         // Pixel c spans fine cells c·f .. c·f + f − 1, its centre at c·f + (f − 1)/2.
-        let shift = |n: usize| ((n / 2) * factor) as f64 + (factor as f64 - 1.0) / 2.0 - ((n * factor) / 2) as f64;
+        let shift = |n: usize| {
+            ((n / 2) * factor) as f64 + (factor as f64 - 1.0) / 2.0 - ((n * factor) / 2) as f64
+        };
         let center_shift = Vector2::new(shift(w), shift(h));
-        render_layout(*layout, &fine_pose, (fw, fh), center_shift, options.sampling, &mut coverage)?;
+        render_layout(
+            *layout,
+            &fine_pose,
+            (fw, fh),
+            center_shift,
+            options.sampling,
+            &mut coverage,
+        )?;
     }
     if factor > 1 {
         gaussian_blur(&mut coverage, fw, fh, options.blur_sigma * factor as f64);
         coverage = bin(&coverage, fw, factor, w, h);
     }
     let (bg, fg) = (options.background, options.foreground);
-    let mut pixels: Vec<f32> = coverage.iter().map(|&c| bg + (fg - bg) * c.min(1.0)).collect();
+    let mut pixels: Vec<f32> = coverage
+        .iter()
+        .map(|&c| bg + (fg - bg) * c.min(1.0))
+        .collect();
     if options.noise_std > 0.0 {
-        let mut rng = SplitMix64(options.seed ^ 0x5eed_0f_be11);
+        let mut rng = SplitMix64(options.seed ^ 0x005e_ed0f_be11);
         for v in pixels.iter_mut() {
             *v += (options.noise_std * rng.gaussian()) as f32;
         }
@@ -157,17 +185,28 @@ fn render_layout(
     coverage: &mut [f32],
 ) -> Result<()> {
     if !(pose.pixel_size.is_finite() && pose.pixel_size > 0.0) {
-        return Err(Error::parameter("pixel_size", format!("must be > 0, got {}", pose.pixel_size)));
+        return Err(Error::parameter(
+            "pixel_size",
+            format!("must be > 0, got {}", pose.pixel_size),
+        ));
     }
     // Orthographic projection pattern → pixel: pixel = A·p + t (columns 1, 2, 4 of cTp).
     let t_cp = pose.camera_from_pattern().to_homogeneous();
     let s = 1.0 / pose.pixel_size;
-    let a = Matrix2::new(s * t_cp[(0, 0)], s * t_cp[(0, 1)], s * t_cp[(1, 0)], s * t_cp[(1, 1)]);
+    let a = Matrix2::new(
+        s * t_cp[(0, 0)],
+        s * t_cp[(0, 1)],
+        s * t_cp[(1, 0)],
+        s * t_cp[(1, 1)],
+    );
     let center = Vector2::new((w / 2) as f64, (h / 2) as f64) + center_shift;
     let t = Vector2::new(s * t_cp[(0, 3)], s * t_cp[(1, 3)]) + center;
-    let a_inv = a
-        .try_inverse()
-        .ok_or_else(|| Error::parameter("pose", "the pattern plane is seen edge-on (singular projection)"))?;
+    let a_inv = a.try_inverse().ok_or_else(|| {
+        Error::parameter(
+            "pose",
+            "the pattern plane is seen edge-on (singular projection)",
+        )
+    })?;
     // Half-pixel steps of the footprint in pattern coordinates, and its bounding half-extent.
     let e1 = a_inv * Vector2::new(0.5, 0.0);
     let e2 = a_inv * Vector2::new(0.0, 0.5);
@@ -181,17 +220,27 @@ fn render_layout(
             let value = match sampling {
                 Sampling::Point => layout.intensity(p.x, p.y),
                 Sampling::Area => {
-                    let bbox = Rect::new(p.x - half_extent.x, p.y - half_extent.y, 2.0 * half_extent.x, 2.0 * half_extent.y);
+                    let bbox = Rect::new(
+                        p.x - half_extent.x,
+                        p.y - half_extent.y,
+                        2.0 * half_extent.x,
+                        2.0 * half_extent.y,
+                    );
                     if !bbox.overlaps(&bounds) {
                         continue;
                     }
                     rects.clear();
                     layout.visit_rects(&bbox, &mut |r| rects.push(r));
-                    let corners = [p - e1 - e2, p + e1 - e2, p + e1 + e2, p - e1 + e2].map(|v| Point2::new(v.x, v.y));
+                    let corners = [p - e1 - e2, p + e1 - e2, p + e1 + e2, p - e1 + e2]
+                        .map(|v| Point2::new(v.x, v.y));
                     let covered: f64 = rects
                         .iter()
                         .map(|r| {
-                            if r.x <= bbox.x && r.y <= bbox.y && r.right() >= bbox.right() && r.bottom() >= bbox.bottom() {
+                            if r.x <= bbox.x
+                                && r.y <= bbox.y
+                                && r.right() >= bbox.right()
+                                && r.bottom() >= bbox.bottom()
+                            {
                                 footprint_area
                             } else {
                                 clipped_area(&corners, r)
@@ -213,10 +262,21 @@ fn clipped_area(quad: &[Point2<f64>; 4], r: &Rect) -> f64 {
     let mut poly: Vec<Point2<f64>> = quad.to_vec();
     let mut next: Vec<Point2<f64>> = Vec::with_capacity(8);
     // Each edge: (axis, bound, keep_greater).
-    let edges = [(0usize, r.x, true), (0, r.right(), false), (1, r.y, true), (1, r.bottom(), false)];
+    let edges = [
+        (0usize, r.x, true),
+        (0, r.right(), false),
+        (1, r.y, true),
+        (1, r.bottom(), false),
+    ];
     for (axis, bound, keep_greater) in edges {
         next.clear();
-        let inside = |p: &Point2<f64>| if keep_greater { p[axis] >= bound } else { p[axis] <= bound };
+        let inside = |p: &Point2<f64>| {
+            if keep_greater {
+                p[axis] >= bound
+            } else {
+                p[axis] <= bound
+            }
+        };
         for i in 0..poly.len() {
             let (cur, prev) = (poly[i], poly[(i + poly.len() - 1) % poly.len()]);
             let (cur_in, prev_in) = (inside(&cur), inside(&prev));
@@ -244,7 +304,9 @@ fn clipped_area(quad: &[Point2<f64>; 4], r: &Rect) -> f64 {
 /// Separable Gaussian blur, σ in pixels, edges replicated.
 fn gaussian_blur(pixels: &mut [f32], w: usize, h: usize, sigma: f64) {
     let radius = (4.0 * sigma).ceil() as i64;
-    let kernel: Vec<f32> = (-radius..=radius).map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp() as f32).collect();
+    let kernel: Vec<f32> = (-radius..=radius)
+        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp() as f32)
+        .collect();
     let norm: f32 = kernel.iter().sum();
     let kernel: Vec<f32> = kernel.iter().map(|k| k / norm).collect();
     let mut tmp = vec![0.0f32; w * h];
@@ -299,11 +361,21 @@ mod tests {
 
     #[test]
     fn clipped_area_of_squares() {
-        let quad = [Point2::new(0.0, 0.0), Point2::new(2.0, 0.0), Point2::new(2.0, 2.0), Point2::new(0.0, 2.0)];
+        let quad = [
+            Point2::new(0.0, 0.0),
+            Point2::new(2.0, 0.0),
+            Point2::new(2.0, 2.0),
+            Point2::new(0.0, 2.0),
+        ];
         assert!((clipped_area(&quad, &Rect::new(1.0, 1.0, 5.0, 5.0)) - 1.0).abs() < 1e-12);
         assert!((clipped_area(&quad, &Rect::new(-1.0, -1.0, 5.0, 5.0)) - 4.0).abs() < 1e-12);
         assert_eq!(clipped_area(&quad, &Rect::new(3.0, 3.0, 1.0, 1.0)), 0.0);
-        let diamond = [Point2::new(1.0, 0.0), Point2::new(2.0, 1.0), Point2::new(1.0, 2.0), Point2::new(0.0, 1.0)];
+        let diamond = [
+            Point2::new(1.0, 0.0),
+            Point2::new(2.0, 1.0),
+            Point2::new(1.0, 2.0),
+            Point2::new(0.0, 1.0),
+        ];
         assert!((clipped_area(&diamond, &Rect::new(1.0, 0.0, 5.0, 5.0)) - 1.0).abs() < 1e-12);
     }
 
@@ -312,7 +384,12 @@ mod tests {
         // 5 px dots at period 10 px: a quarter of the covered region is bright, whatever the pose.
         let layout = PeriodicLayout::new(10.0, 41, 41).unwrap();
         for (alpha, x) in [(0.0, 0.0), (0.37, 1.3), (-2.0, -4.1)] {
-            let img = render(&layout, &Pose::planar(x, 2.0, alpha, 1.0), &RenderOptions::new(100, 100)).unwrap();
+            let img = render(
+                &layout,
+                &Pose::planar(x, 2.0, alpha, 1.0),
+                &RenderOptions::new(100, 100),
+            )
+            .unwrap();
             let mean: f64 = img.pixels().iter().map(|&v| v as f64).sum::<f64>() / 10_000.0;
             assert!((mean - 0.25).abs() < 0.01, "alpha {alpha}: mean {mean}");
         }
@@ -338,6 +415,9 @@ mod tests {
         let a = render(&layout, &Pose::planar(0.0, 0.0, 0.1, 1.0), &opts).unwrap();
         let b = render(&layout, &Pose::planar(0.0, 0.0, 0.1, 1.0), &opts).unwrap();
         assert_eq!(a, b);
-        assert!(a.pixels().iter().all(|v| (v * 4095.0 - (v * 4095.0).round()).abs() < 1e-3));
+        assert!(a
+            .pixels()
+            .iter()
+            .all(|v| (v * 4095.0 - (v * 4095.0).round()).abs() < 1e-3));
     }
 }

@@ -19,7 +19,10 @@ fn random_case(rng: &mut SmallRng) -> Case {
     let period_px: f64 = rng.random_range(7.0..15.0);
     let periods_w: f64 = rng.random_range(8.0..30.0);
     let periods_h: f64 = rng.random_range(8.0..30.0);
-    let size = ((periods_w * period_px).round() as usize, (periods_h * period_px).round() as usize);
+    let size = (
+        (periods_w * period_px).round() as usize,
+        (periods_h * period_px).round() as usize,
+    );
     let pixel_size = rng.random_range(0.5..2.0);
     let period = period_px * pixel_size;
     let pose = Pose::planar(
@@ -28,7 +31,12 @@ fn random_case(rng: &mut SmallRng) -> Case {
         rng.random_range(-std::f64::consts::PI..std::f64::consts::PI),
         pixel_size,
     );
-    Case { period_px, size, pose, period }
+    Case {
+        period_px,
+        size,
+        pose,
+        period,
+    }
 }
 
 /// Image formation of a round-trip batch.
@@ -40,7 +48,12 @@ struct Imaging {
     bits: Option<u32>,
 }
 
-const SHARP: Imaging = Imaging { sampling: Sampling::Area, blur: 0.0, noise: 0.0, bits: None };
+const SHARP: Imaging = Imaging {
+    sampling: Sampling::Area,
+    blur: 0.0,
+    noise: 0.0,
+    bits: None,
+};
 
 struct Stats {
     worst_px: f64,
@@ -48,7 +61,12 @@ struct Stats {
     worst_rad: f64,
 }
 
-fn run(imaging: Imaging, cases: usize, seed: u64, configure: impl Fn(&mut PeriodicParams)) -> Stats {
+fn run(
+    imaging: Imaging,
+    cases: usize,
+    seed: u64,
+    configure: impl Fn(&mut PeriodicParams),
+) -> Stats {
     let mut rng = SmallRng::seed_from_u64(seed);
     let (mut worst_px, mut worst_rad, mut sum2) = (0.0f64, 0.0f64, 0.0f64);
     for i in 0..cases {
@@ -69,7 +87,10 @@ fn run(imaging: Imaging, cases: usize, seed: u64, configure: impl Fn(&mut Period
         let image = render(&layout, &case.pose, &opts).unwrap();
         let mut params = PeriodicParams::new(case.period);
         configure(&mut params);
-        let found = PeriodicDetector::new(params).unwrap().detect(&image).unwrap();
+        let found = PeriodicDetector::new(params)
+            .unwrap()
+            .detect(&image)
+            .unwrap();
         let center = ((case.size.0 / 2) as f64, (case.size.1 / 2) as f64);
         let (err_px, err_rad) = common::lattice_error(&found.pose, &case.pose, case.period, center);
         if std::env::var("VERBOSE").is_ok() && err_px > 1e-5 {
@@ -79,7 +100,11 @@ fn run(imaging: Imaging, cases: usize, seed: u64, configure: impl Fn(&mut Period
         worst_rad = worst_rad.max(err_rad);
         sum2 += err_px * err_px;
     }
-    let stats = Stats { worst_px, rms_px: (sum2 / cases as f64).sqrt(), worst_rad };
+    let stats = Stats {
+        worst_px,
+        rms_px: (sum2 / cases as f64).sqrt(),
+        worst_rad,
+    };
     eprintln!(
         "{cases} cases: worst {:.2e} px, rms {:.2e} px, worst angle {:.2e} rad",
         stats.worst_px, stats.rms_px, stats.worst_rad
@@ -110,27 +135,67 @@ fn noise_free_sharp_area_sampled_dots() {
 #[test]
 fn noise_free_raised_cosine_point_samples() {
     // The original's renderer (band-limited profile): the estimator alone is tested here.
-    let s = run(Imaging { sampling: Sampling::Point, ..SHARP }, 60, 3, |_| {});
+    let s = run(
+        Imaging {
+            sampling: Sampling::Point,
+            ..SHARP
+        },
+        60,
+        3,
+        |_| {},
+    );
     assert!(s.worst_px < 5e-6, "translation {:.2e} px", s.worst_px);
     assert!(s.worst_rad < 5e-7, "angle {:.2e} rad", s.worst_rad);
 }
 
 #[test]
 fn one_percent_noise_on_12_bit_images() {
-    let imaging = Imaging { blur: 0.5, noise: 0.01, bits: Some(12), ..SHARP };
+    let imaging = Imaging {
+        blur: 0.5,
+        noise: 0.01,
+        bits: Some(12),
+        ..SHARP
+    };
     let s = run(imaging, 60, 2, |_| {});
     assert!(s.worst_px < 5e-3, "translation {:.2e} px", s.worst_px);
-    let sharp = run(Imaging { blur: 0.0, ..imaging }, 60, 4, |_| {});
-    assert!(sharp.worst_px < 5e-3, "translation {:.2e} px", sharp.worst_px);
+    let sharp = run(
+        Imaging {
+            blur: 0.0,
+            ..imaging
+        },
+        60,
+        4,
+        |_| {},
+    );
+    assert!(
+        sharp.worst_px < 5e-3,
+        "translation {:.2e} px",
+        sharp.worst_px
+    );
 }
 
 #[test]
 fn band_pass_alone_is_the_original_method() {
     // Without refinement the planes are those of METHOD.md §4.4–4.6 (Gaussian band-pass, plane
     // fit), whose harmonic leakage costs accuracy on raised-cosine renders.
-    let plain = run(Imaging { sampling: Sampling::Point, ..SHARP }, 30, 3, |p| p.phase.refine_iterations = 0);
-    assert!(plain.worst_px < 2e-3, "translation {:.2e} px", plain.worst_px);
-    assert!(plain.worst_px > 2e-5, "refinement should be what brings the 1e-5 px level");
+    let plain = run(
+        Imaging {
+            sampling: Sampling::Point,
+            ..SHARP
+        },
+        30,
+        3,
+        |p| p.phase.refine_iterations = 0,
+    );
+    assert!(
+        plain.worst_px < 2e-3,
+        "translation {:.2e} px",
+        plain.worst_px
+    );
+    assert!(
+        plain.worst_px > 2e-5,
+        "refinement should be what brings the 1e-5 px level"
+    );
 }
 
 /// The decimated band-pass evaluates the same band-limited phase field as the full-size
@@ -139,9 +204,17 @@ fn band_pass_alone_is_the_original_method() {
 fn demodulated_band_pass_samples_the_full_size_phase_exactly() {
     // 144 px and 216 px sides: the 36-point decimated grid falls on every 4th / 6th pixel.
     let layout = PeriodicLayout::new(10.0, 61, 61).unwrap();
-    let image = render(&layout, &Pose::planar(1.3, -2.2, 0.37, 1.0), &RenderOptions::new(144, 216)).unwrap();
+    let image = render(
+        &layout,
+        &Pose::planar(1.3, -2.2, 0.37, 1.0),
+        &RenderOptions::new(144, 216),
+    )
+    .unwrap();
     let mut engine = vernier::PhaseEngine::new();
-    let mut params = vernier::PhaseParams { keep_phase_maps: true, ..Default::default() };
+    let mut params = vernier::PhaseParams {
+        keep_phase_maps: true,
+        ..Default::default()
+    };
     let decimated = engine.analyze(&image, &params).unwrap();
     params.full_resolution_bandpass = true;
     let full = engine.analyze(&image, &params).unwrap();
@@ -153,7 +226,8 @@ fn demodulated_band_pass_samples_the_full_size_phase_exactly() {
         for j in 0..d.rows {
             for i in 0..d.cols {
                 let (x, y) = (i * 4, j * 6);
-                let diff = (d.phase[j * d.cols + i] as f64 - f.phase[y * f.cols + x] as f64).rem_euclid(std::f64::consts::TAU);
+                let diff = (d.phase[j * d.cols + i] as f64 - f.phase[y * f.cols + x] as f64)
+                    .rem_euclid(std::f64::consts::TAU);
                 worst = worst.max(diff.min(std::f64::consts::TAU - diff));
             }
         }
@@ -185,7 +259,8 @@ fn demodulated_band_pass_loses_no_accuracy() {
         let full = engine.analyze(&image, &params).unwrap();
         for (d, f) in decimated.planes.iter().zip(&full.planes) {
             let pixels = case.size.0.max(case.size.1) as f64;
-            let diff = vernier::phase::wrap_to_pi(d.c - f.c).abs() + ((d.a - f.a).abs() + (d.b - f.b).abs()) * pixels;
+            let diff = vernier::phase::wrap_to_pi(d.c - f.c).abs()
+                + ((d.a - f.a).abs() + (d.b - f.b).abs()) * pixels;
             worst = worst.max(diff);
         }
     }

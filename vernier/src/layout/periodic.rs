@@ -27,11 +27,17 @@ impl PeriodicLayout {
     /// `0 < dot_size ≤ period`).
     pub fn with_dot_size(period: f64, n_rows: usize, n_cols: usize, dot_size: f64) -> Result<Self> {
         if !(period.is_finite() && period > 0.0) {
-            return Err(Error::pattern("period", format!("must be a positive number, got {period}")));
+            return Err(Error::pattern(
+                "period",
+                format!("must be a positive number, got {period}"),
+            ));
         }
         for (key, n) in [("nRows", n_rows), ("nCols", n_cols)] {
             if n == 0 || n % 2 == 0 {
-                return Err(Error::pattern(key, format!("must be a positive odd integer, got {n}")));
+                return Err(Error::pattern(
+                    key,
+                    format!("must be a positive odd integer, got {n}"),
+                ));
             }
         }
         if !(dot_size.is_finite() && dot_size > 0.0 && dot_size <= period) {
@@ -174,7 +180,9 @@ mod tests {
         let rects = l.rects_in(&l.bounds());
         assert_eq!(rects.len(), 14, "15 dots minus the top-left one");
         // The central dot is centred on the pattern origin.
-        assert!(rects.iter().any(|r| r.x == -2.5 && r.y == -2.5 && r.width == 5.0));
+        assert!(rects
+            .iter()
+            .any(|r| r.x == -2.5 && r.y == -2.5 && r.width == 5.0));
         assert_eq!(l.intensity(0.0, 0.0), 1.0);
         assert!(l.intensity(5.0, 0.0).abs() < 1e-15);
         assert_eq!(l.intensity(-20.0, -10.0), 0.0, "missing top-left dot");

@@ -135,7 +135,12 @@ pub(crate) fn lobe_phase(
             *offset += TAU;
         }
     };
-    let unwrap_line = |phase: &mut Vec<f64>, idx: &dyn Fn(usize) -> usize, len: usize, start: usize, base: f64, raw_at: &dyn Fn(usize) -> f64| {
+    let unwrap_line = |phase: &mut Vec<f64>,
+                       idx: &dyn Fn(usize) -> usize,
+                       len: usize,
+                       start: usize,
+                       base: f64,
+                       raw_at: &dyn Fn(usize) -> f64| {
         for dir in [-1i64, 1] {
             let mut offset = base - raw_at(start);
             let mut prev = raw_at(start);
@@ -151,23 +156,37 @@ pub(crate) fn lobe_phase(
     };
     let anchor_value = raw(anchor_j, anchor_i);
     phase[anchor_j * mc + anchor_i] = anchor_value;
-    unwrap_line(&mut phase, &|i| anchor_j * mc + i, mc, anchor_i, anchor_value, &|i| raw(anchor_j, i));
+    unwrap_line(
+        &mut phase,
+        &|i| anchor_j * mc + i,
+        mc,
+        anchor_i,
+        anchor_value,
+        &|i| raw(anchor_j, i),
+    );
     for i in 0..mc {
         let base = phase[anchor_j * mc + i];
-        unwrap_line(&mut phase, &|j| j * mc + i, mr, anchor_j, base, &|j| raw(j, i));
+        unwrap_line(&mut phase, &|j| j * mc + i, mr, anchor_j, base, &|j| {
+            raw(j, i)
+        });
     }
     // Plane fit on the samples inside the central crop, in image-frame coordinates.
     let col_offset = (cols as f64 * crop_factor / 2.0).floor();
     let row_offset = (rows as f64 * crop_factor / 2.0).floor();
     let inside = |pos: f64, offset: f64, n: usize| pos >= offset && pos < n as f64 - offset;
-    let samples = (0..mr).flat_map(|j| (0..mc).map(move |i| (j, i))).filter_map(|(j, i)| {
-        let (x, y) = (i as f64 * step_x, j as f64 * step_y);
-        (inside(x, col_offset, cols) && inside(y, row_offset, rows))
-            .then(|| (x - cx, y - cy, phase[j * mc + i]))
-    });
+    let samples = (0..mr)
+        .flat_map(|j| (0..mc).map(move |i| (j, i)))
+        .filter_map(|(j, i)| {
+            let (x, y) = (i as f64 * step_x, j as f64 * step_y);
+            (inside(x, col_offset, cols) && inside(y, row_offset, rows))
+                .then(|| (x - cx, y - cy, phase[j * mc + i]))
+        });
     let base = fit_plane(samples)?;
     // Add the carrier exp(2πi(kx0·x/C + ky0·y/R)) back, referred to the centre pixel.
-    let (fx, fy) = (TAU * kx0 as f64 / cols as f64, TAU * ky0 as f64 / rows as f64);
+    let (fx, fy) = (
+        TAU * kx0 as f64 / cols as f64,
+        TAU * ky0 as f64 / rows as f64,
+    );
     let plane = PhasePlane {
         a: base.a + fx,
         b: base.b + fy,
@@ -180,7 +199,9 @@ pub(crate) fn lobe_phase(
         step_x,
         step_y,
         phase: (0..mr * mc)
-            .map(|k| (phase[k] + fx * (k % mc) as f64 * step_x + fy * (k / mc) as f64 * step_y) as f32)
+            .map(|k| {
+                (phase[k] + fx * (k % mc) as f64 * step_x + fy * (k / mc) as f64 * step_y) as f32
+            })
             .collect(),
         amplitude: plan.grid.iter().map(|z| z.norm()).collect(),
     });

@@ -53,7 +53,11 @@ pub(crate) fn find_lobes(
     let (rows, cols) = (spectrum.rows as i64, spectrum.cols as i64);
     // Magnitudes on the signed grid kx ∈ [−1, kx_max+1], ky ∈ [−ky_max−1, ky_max+1] covering the
     // ring, plus one margin bin for the 3×3 smoothing; everything outside the ring is zero.
-    let max_r = search.max_radius.min((cols / 2) as f64).min((rows / 2) as f64).max(0.0);
+    let max_r = search
+        .max_radius
+        .min((cols / 2) as f64)
+        .min((rows / 2) as f64)
+        .max(0.0);
     let kx_max = (max_r.floor() as i64).min(cols / 2);
     let ky_max = (max_r.floor() as i64).min(rows / 2);
     let width = (kx_max + 3) as usize; // kx from −1 to kx_max + 1
@@ -141,12 +145,15 @@ pub(crate) fn find_lobes(
             prominence: if ring_mean > 0.0 { v / ring_mean } else { 0.0 },
         }
     };
-    let accept = |l: &Lobe| l.power > search.min_peak_power && l.prominence >= search.min_peak_prominence;
+    let accept =
+        |l: &Lobe| l.power > search.min_peak_power && l.prominence >= search.min_peak_prominence;
 
-    let first = best(&|_, _| false).map(to_lobe).ok_or(LobeError::NoFirstPeak {
-        power: 0.0,
-        prominence: 0.0,
-    })?;
+    let first = best(&|_, _| false)
+        .map(to_lobe)
+        .ok_or(LobeError::NoFirstPeak {
+            power: 0.0,
+            prominence: 0.0,
+        })?;
     if !accept(&first) {
         return Err(LobeError::NoFirstPeak {
             power: first.power,
@@ -164,10 +171,12 @@ pub(crate) fn find_lobes(
         }
         d <= half_width
     };
-    let second = best(&excluded).map(to_lobe).ok_or(LobeError::NoSecondPeak {
-        power: 0.0,
-        prominence: 0.0,
-    })?;
+    let second = best(&excluded)
+        .map(to_lobe)
+        .ok_or(LobeError::NoSecondPeak {
+            power: 0.0,
+            prominence: 0.0,
+        })?;
     if !accept(&second) {
         return Err(LobeError::NoSecondPeak {
             power: second.power,
@@ -204,7 +213,11 @@ fn fundamentals(
             candidates.push((sx / 2, sy / 2));
         }
     }
-    let pixels_per_power = if p.power > 0.0 { strength(p.kx, p.ky) / p.power } else { 1.0 };
+    let pixels_per_power = if p.power > 0.0 {
+        strength(p.kx, p.ky) / p.power
+    } else {
+        1.0
+    };
     let mut strong: Vec<Lobe> = candidates
         .into_iter()
         .filter(|&(kx, ky)| (kx, ky) != (0, 0))

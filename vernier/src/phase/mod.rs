@@ -80,22 +80,40 @@ impl PhaseParams {
     /// Checks every field, naming the first invalid one.
     pub fn validate(&self) -> Result<()> {
         if !(self.sigma.is_finite() && self.sigma > 0.0) {
-            return Err(Error::parameter("sigma", format!("must be > 0 bins, got {}", self.sigma)));
+            return Err(Error::parameter(
+                "sigma",
+                format!("must be > 0 bins, got {}", self.sigma),
+            ));
         }
         if !(self.min_frequency.is_finite() && self.min_frequency >= 0.0) {
-            return Err(Error::parameter("min_frequency", format!("must be ≥ 0 bins, got {}", self.min_frequency)));
+            return Err(Error::parameter(
+                "min_frequency",
+                format!("must be ≥ 0 bins, got {}", self.min_frequency),
+            ));
         }
         if self.max_frequency.is_nan() || self.max_frequency <= self.min_frequency {
-            return Err(Error::parameter("max_frequency", format!("must exceed min_frequency, got {}", self.max_frequency)));
+            return Err(Error::parameter(
+                "max_frequency",
+                format!("must exceed min_frequency, got {}", self.max_frequency),
+            ));
         }
-        if !(self.min_peak_power >= 0.0) {
-            return Err(Error::parameter("min_peak_power", format!("must be ≥ 0, got {}", self.min_peak_power)));
+        if self.min_peak_power.is_nan() || self.min_peak_power < 0.0 {
+            return Err(Error::parameter(
+                "min_peak_power",
+                format!("must be ≥ 0, got {}", self.min_peak_power),
+            ));
         }
-        if !(self.min_peak_prominence >= 0.0) {
-            return Err(Error::parameter("min_peak_prominence", format!("must be ≥ 0, got {}", self.min_peak_prominence)));
+        if self.min_peak_prominence.is_nan() || self.min_peak_prominence < 0.0 {
+            return Err(Error::parameter(
+                "min_peak_prominence",
+                format!("must be ≥ 0, got {}", self.min_peak_prominence),
+            ));
         }
         if !(0.0..1.0).contains(&self.crop_factor) {
-            return Err(Error::parameter("crop_factor", format!("must be in [0, 1), got {}", self.crop_factor)));
+            return Err(Error::parameter(
+                "crop_factor",
+                format!("must be in [0, 1), got {}", self.crop_factor),
+            ));
         }
         Ok(())
     }
@@ -162,9 +180,18 @@ impl PhaseEngine {
         Self::default()
     }
 
-    fn cache_for(&mut self, rows: usize, cols: usize, sigma: f64, full_resolution: bool) -> &mut SizeCache {
+    fn cache_for(
+        &mut self,
+        rows: usize,
+        cols: usize,
+        sigma: f64,
+        full_resolution: bool,
+    ) -> &mut SizeCache {
         let matches = |c: &SizeCache| {
-            c.rows == rows && c.cols == cols && c.sigma == sigma && c.full_resolution == full_resolution
+            c.rows == rows
+                && c.cols == cols
+                && c.sigma == sigma
+                && c.full_resolution == full_resolution
         };
         if let Some(pos) = self.caches.iter().position(matches) {
             // Most recently used goes last.
@@ -232,7 +259,11 @@ impl PhaseEngine {
             })
         })?;
         let mut maps = Vec::new();
-        let mut bandpass_planes = [PhasePlane { a: 0.0, b: 0.0, c: 0.0 }; 2];
+        let mut bandpass_planes = [PhasePlane {
+            a: 0.0,
+            b: 0.0,
+            c: 0.0,
+        }; 2];
         for (k, lobe) in [lobe1, lobe2].iter().enumerate() {
             let (plane, map) = bandpass::lobe_phase(
                 &spectrum,
@@ -247,7 +278,12 @@ impl PhaseEngine {
             maps.extend(map);
         }
         let (planes, amplitudes, phase_std, quality, iterations) = if params.refine_iterations > 0 {
-            let r = refine::refine(image.pixels(), bandpass_planes, &mut cache.refine, params.refine_iterations);
+            let r = refine::refine(
+                image.pixels(),
+                bandpass_planes,
+                &mut cache.refine,
+                params.refine_iterations,
+            );
             // Each fundamental A·cos carries A²/2 of the variance; the offset's noise follows
             // from the residual: var(c) = 2σ²/(A²·N_eff).
             let explained = (r.amplitudes[0].powi(2) + r.amplitudes[1].powi(2)) / 2.0;
@@ -258,15 +294,22 @@ impl PhaseEngine {
                     f64::INFINITY
                 }
             };
-            let quality = if r.variance > 0.0 { (explained / r.variance).min(1.0) } else { 0.0 };
-            (r.planes, r.amplitudes, [std(r.amplitudes[0]), std(r.amplitudes[1])], quality, r.iterations)
+            let quality = if r.variance > 0.0 {
+                (explained / r.variance).min(1.0)
+            } else {
+                0.0
+            };
+            (
+                r.planes,
+                r.amplitudes,
+                [std(r.amplitudes[0]), std(r.amplitudes[1])],
+                quality,
+                r.iterations,
+            )
         } else {
             (bandpass_planes, [f64::NAN; 2], [f64::NAN; 2], f64::NAN, 0)
         };
-        let maps = match <[PhaseMap; 2]>::try_from(maps) {
-            Ok(m) => Some(m),
-            Err(_) => None,
-        };
+        let maps = <[PhaseMap; 2]>::try_from(maps).ok();
         Ok(PhaseAnalysis {
             size: (rows, cols),
             planes,

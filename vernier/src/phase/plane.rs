@@ -124,7 +124,11 @@ mod tests {
         let (r0, c0) = (rows / 4, cols * 5 / 20);
         let samples = (r0..rows - r0).flat_map(|r| {
             (c0..cols - c0).map(move |c| {
-                (c as f64 - (cols / 2) as f64, r as f64 - (rows / 2) as f64, 2.0 * c as f64)
+                (
+                    c as f64 - (cols / 2) as f64,
+                    r as f64 - (rows / 2) as f64,
+                    2.0 * c as f64,
+                )
             })
         });
         let p = fit_plane(samples).unwrap();

@@ -47,7 +47,11 @@ pub(crate) fn sine_cubed(n: usize) -> Vec<f64> {
         return vec![1.0];
     }
     (0..n)
-        .map(|i| (std::f64::consts::PI * i as f64 / (n - 1) as f64).sin().powi(3))
+        .map(|i| {
+            (std::f64::consts::PI * i as f64 / (n - 1) as f64)
+                .sin()
+                .powi(3)
+        })
         .collect()
 }
 
@@ -109,7 +113,8 @@ unsafe fn row_dots_avx2(row: &[f32], kernels: &[f32], n: usize) -> [f64; 8] {
 fn row_dots(row: &[f32], kernels: &[f32], n: usize) -> [f64; 8] {
     #[cfg(target_arch = "x86_64")]
     {
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
             // SAFETY: the required CPU features were just detected.
             return unsafe { row_dots_avx2(row, kernels, n) };
         }
@@ -189,7 +194,11 @@ fn basis(j: usize) -> Basis {
         lobe: k / 6,
         px,
         py,
-        z: if k % 2 == 0 { Cplx::new(1.0, 0.0) } else { Cplx::new(0.0, 1.0) },
+        z: if k % 2 == 0 {
+            Cplx::new(1.0, 0.0)
+        } else {
+            Cplx::new(0.0, 1.0)
+        },
     }
 }
 
@@ -245,9 +254,9 @@ pub(crate) fn refine(
         iterations += 1;
         // Kernel rows for both lobes: w·e^{−iax} (re, im) and x·w·e^{−iax} (re, im).
         for (l, plane) in planes.iter().enumerate() {
-            for x in 0..cols {
-                let e = Cplx::from_polar(plan.wx[x], -plane.a * xs[x]);
-                let ex = e * xs[x];
+            for (x, (&w, &t)) in plan.wx.iter().zip(&xs).enumerate() {
+                let e = Cplx::from_polar(w, -plane.a * t);
+                let ex = e * t;
                 plan.kernels[(4 * l) * cols + x] = e.re as f32;
                 plan.kernels[(4 * l + 1) * cols + x] = e.im as f32;
                 plan.kernels[(4 * l + 2) * cols + x] = ex.re as f32;
@@ -315,7 +324,10 @@ pub(crate) fn refine(
             plane.b += db;
             plane.c += dc;
             amplitudes[l] = amp.norm();
-            largest_step = largest_step.max(dc.abs()).max(da.abs() * extent).max(db.abs() * extent);
+            largest_step = largest_step
+                .max(dc.abs())
+                .max(da.abs() * extent)
+                .max(db.abs() * extent);
         }
         if largest_step < 1e-8 {
             break;
@@ -339,8 +351,16 @@ mod tests {
     fn recovers_pure_cosines() {
         let (rows, cols) = (64usize, 70usize);
         let truth = [
-            PhasePlane { a: 0.61, b: 0.13, c: 0.4 },
-            PhasePlane { a: -0.13, b: 0.61, c: -1.2 },
+            PhasePlane {
+                a: 0.61,
+                b: 0.13,
+                c: 0.4,
+            },
+            PhasePlane {
+                a: -0.13,
+                b: 0.61,
+                c: -1.2,
+            },
         ];
         let (cx, cy) = ((cols / 2) as f64, (rows / 2) as f64);
         let pixels: Vec<f32> = (0..rows * cols)
@@ -350,13 +370,24 @@ mod tests {
             })
             .collect();
         let start = [
-            PhasePlane { a: 0.6, b: 0.135, c: 0.3 },
-            PhasePlane { a: -0.125, b: 0.62, c: -1.1 },
+            PhasePlane {
+                a: 0.6,
+                b: 0.135,
+                c: 0.3,
+            },
+            PhasePlane {
+                a: -0.125,
+                b: 0.62,
+                c: -1.1,
+            },
         ];
         let mut plan = RefinePlan::new(rows, cols);
         let r = refine(&pixels, start, &mut plan, 6);
         for (p, t) in r.planes.iter().zip(&truth) {
-            assert!((p.a - t.a).abs() < 1e-6 && (p.b - t.b).abs() < 1e-6, "{p:?} vs {t:?}");
+            assert!(
+                (p.a - t.a).abs() < 1e-6 && (p.b - t.b).abs() < 1e-6,
+                "{p:?} vs {t:?}"
+            );
             assert!((p.c - t.c).abs() < 1e-5, "{p:?} vs {t:?}");
         }
         assert!((r.amplitudes[0] - 0.2).abs() < 1e-3);

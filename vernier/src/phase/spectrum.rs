@@ -166,7 +166,10 @@ mod tests {
                     let err = ((got.re as f64 - expected.re).powi(2)
                         + (got.im as f64 - expected.im).powi(2))
                     .sqrt();
-                    assert!(err < 1e-4, "{rows}x{cols} bin ({kx},{ky}): {got} vs {expected}");
+                    assert!(
+                        err < 1e-4,
+                        "{rows}x{cols} bin ({kx},{ky}): {got} vs {expected}"
+                    );
                 }
             }
         }
