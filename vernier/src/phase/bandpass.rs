@@ -62,8 +62,8 @@ pub(crate) fn fast_size(n: usize) -> usize {
     best
 }
 
-/// Decimated unwrapped phase of one lobe: samples at pixel positions `(i·step_x, j·step_y)`
-/// (from pixel (0, 0)), row-major `rows × cols`, radians.
+/// Decimated unwrapped phase of one lobe: samples at pixel positions
+/// `(offset.0 + i·step_x, offset.1 + j·step_y)`, row-major `rows × cols`, radians.
 #[derive(Clone, Debug, Default)]
 pub struct PhaseMap {
     /// Number of sample rows.
@@ -74,6 +74,8 @@ pub struct PhaseMap {
     pub step_x: f64,
     /// Pixel distance between sample rows.
     pub step_y: f64,
+    /// Pixel position `(x, y)` of sample (0, 0).
+    pub offset: (f64, f64),
     /// Unwrapped phase, radians (wrap it with `rem_euclid(2π)` to display the wrapped phase).
     pub phase: Vec<f32>,
     /// Band-pass amplitude, arbitrary units.
@@ -198,6 +200,7 @@ pub(crate) fn lobe_phase(
         cols: mc,
         step_x,
         step_y,
+        offset: (0.0, 0.0),
         phase: (0..mr * mc)
             .map(|k| {
                 (phase[k] + fx * (k % mc) as f64 * step_x + fy * (k / mc) as f64 * step_y) as f32

@@ -41,8 +41,9 @@ pub struct PhaseParams {
     pub max_frequency: f64,
     /// Minimum smoothed lobe magnitude divided by the pixel count. Default 1e-5.
     pub min_peak_power: f64,
-    /// Minimum lobe magnitude divided by the mean magnitude of the search ring. Default 8:
-    /// the strongest bin of white noise on a 1024² image reaches about 5.
+    /// Minimum lobe prominence: root of its 3×3 neighbourhood energy over that of an average
+    /// neighbourhood of the search ring. Default 5: the strongest lobe of white noise on a
+    /// 1024² image reaches about 2.
     pub min_peak_prominence: f64,
     /// Fraction of each image side removed (half on each side) before the plane fit of the
     /// band-pass estimate, in `[0, 1)`. Default 0.5.
@@ -56,6 +57,11 @@ pub struct PhaseParams {
     /// with `refine_iterations = 0` the full-size transform is always used; with refinement the
     /// band-pass planes are only a starting point and the result is identical either way.
     pub full_resolution_bandpass: bool,
+    /// Run the spectral stage (FFT, lobe search, band-pass) on a 2×2-binned copy of images of
+    /// at least 128 px per side, 4× cheaper; the full-size refinement then restores full
+    /// accuracy (tests/periodic_roundtrip.rs checks both give the same result). Only used when
+    /// refining; grids finer than 6 px per period fall back to the full-size stage. Default true.
+    pub spectrum_binning: bool,
     /// Keep the decimated phase maps in the result (for display). Default false.
     pub keep_phase_maps: bool,
 }
@@ -67,10 +73,11 @@ impl Default for PhaseParams {
             min_frequency: 4.0,
             max_frequency: f64::INFINITY,
             min_peak_power: 1e-5,
-            min_peak_prominence: 8.0,
+            min_peak_prominence: 5.0,
             crop_factor: 0.5,
             refine_iterations: 3,
             full_resolution_bandpass: false,
+            spectrum_binning: true,
             keep_phase_maps: false,
         }
     }
@@ -127,9 +134,11 @@ pub struct PhaseAnalysis {
     /// The two phase planes (image frame). Plane 1's direction is in `[0, π/2)`, plane 2's in
     /// `[π/2, π)`, both up to the refinement's sub-bin adjustment.
     pub planes: [PhasePlane; 2],
-    /// The band-pass estimate before refinement (the original method's planes).
+    /// The estimate of the spectral stage, before the full-size refinement (the original
+    /// method's planes when `refine_iterations = 0`).
     pub bandpass_planes: [PhasePlane; 2],
-    /// The two spectral lobes found.
+    /// The two spectral lobes found (bins of the analysed spectrum: the 2×2-binned image's for
+    /// images of at least 128 px per side when refining).
     pub lobes: [Lobe; 2],
     /// Amplitude `A` of each fundamental cosine `A·cos φ`, intensity units.
     pub amplitudes: [f64; 2],
@@ -151,16 +160,44 @@ impl PhaseAnalysis {
     }
 }
 
-/// Plans and buffers for one image size.
+/// Plans and buffers for one image size (each part built on first use).
 struct SizeCache {
     rows: usize,
     cols: usize,
     sigma: f64,
     full_resolution: bool,
-    spectrum: SpectrumPlan,
-    bandpass: BandpassPlan,
-    refine: RefinePlan,
-    magnitude: Vec<f32>,
+    spectrum: Option<SpectrumPlan>,
+    bandpass: Option<BandpassPlan>,
+    refine: Option<RefinePlan>,
+    /// 2×2-binned copy of the image for the coarse stage.
+    binned: Vec<f32>,
+}
+
+impl SizeCache {
+    fn spectrum(&mut self) -> &mut SpectrumPlan {
+        let (rows, cols) = (self.rows, self.cols);
+        self.spectrum
+            .get_or_insert_with(|| SpectrumPlan::new(rows, cols))
+    }
+    fn bandpass(&mut self) -> &mut BandpassPlan {
+        let (rows, cols) = (self.rows, self.cols);
+        let (sigma, full) = (self.sigma, self.full_resolution);
+        self.bandpass.get_or_insert_with(|| {
+            // Decimated band-pass grid: ±6σ bins around the lobe (Gaussian weight < 2e-8 beyond).
+            let needed = fast_size((12.0 * sigma).ceil() as usize);
+            let (mr, mc) = if full {
+                (rows, cols)
+            } else {
+                (needed.min(rows), needed.min(cols))
+            };
+            BandpassPlan::new(mr, mc)
+        })
+    }
+    fn refine(&mut self) -> &mut RefinePlan {
+        let (rows, cols) = (self.rows, self.cols);
+        self.refine
+            .get_or_insert_with(|| RefinePlan::new(rows, cols))
+    }
 }
 
 /// The phase engine. Keeps FFT plans and work buffers for the last few image sizes, so calling
@@ -171,8 +208,22 @@ pub struct PhaseEngine {
 }
 
 /// How many image sizes keep their plans (HP/Stamp detectors alternate full frames and
-/// snapshots).
-const CACHED_SIZES: usize = 4;
+/// snapshots; binning adds the half size).
+const CACHED_SIZES: usize = 6;
+
+/// Images at least this large on both sides run the spectral stage on a 2×2-binned copy.
+const BINNING_MIN_SIDE: usize = 128;
+
+/// Shortest grid period, in binned pixels, accepted from the binned stage: below this the
+/// binned spectrum folds harmonics onto the fundamentals and the full-size search is used.
+const BINNED_MIN_PERIOD: f64 = 3.0;
+
+/// Band-pass result of the spectral stage.
+struct SpectralEstimate {
+    lobes: [Lobe; 2],
+    planes: [PhasePlane; 2],
+    maps: Option<[PhaseMap; 2]>,
+}
 
 impl PhaseEngine {
     /// An engine with empty caches.
@@ -201,22 +252,15 @@ impl PhaseEngine {
             if self.caches.len() >= CACHED_SIZES {
                 self.caches.remove(0);
             }
-            // Decimated band-pass grid: ±6σ bins around the lobe (Gaussian weight < 2e-8 beyond).
-            let needed = fast_size((12.0 * sigma).ceil() as usize);
-            let (mr, mc) = if full_resolution {
-                (rows, cols)
-            } else {
-                (needed.min(rows), needed.min(cols))
-            };
             self.caches.push(SizeCache {
                 rows,
                 cols,
                 sigma,
                 full_resolution,
-                spectrum: SpectrumPlan::new(rows, cols),
-                bandpass: BandpassPlan::new(mr, mc),
-                refine: RefinePlan::new(rows, cols),
-                magnitude: Vec::new(),
+                spectrum: None,
+                bandpass: None,
+                refine: None,
+                binned: Vec::new(),
             });
         }
         let last = self.caches.len() - 1;
@@ -237,51 +281,32 @@ impl PhaseEngine {
                 "{cols}x{rows} pixels is too small for the phase engine (at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE})"
             )));
         }
-        let full_resolution = params.full_resolution_bandpass || params.refine_iterations == 0;
-        let cache = self.cache_for(rows, cols, params.sigma, full_resolution);
-        let spectrum = cache.spectrum.forward(image.pixels());
-        let search = lobes::LobeSearch {
-            min_radius: params.min_frequency,
-            max_radius: params.max_frequency,
-            sigma: params.sigma,
-            min_peak_power: params.min_peak_power,
-            min_peak_prominence: params.min_peak_prominence,
-        };
-        let (lobe1, lobe2) = lobes::find_lobes(&spectrum, &search, &mut cache.magnitude).map_err(|e| {
-            Error::PatternNotFound(match e {
-                lobes::LobeError::NoFirstPeak { power, prominence } => format!(
-                    "no spectral lobe (strongest: power {power:.2e}, prominence {prominence:.1}; need > {:.1e} and ≥ {})",
-                    params.min_peak_power, params.min_peak_prominence
-                ),
-                lobes::LobeError::NoSecondPeak { power, prominence } => format!(
-                    "only one spectral lobe, no second grid direction (next: power {power:.2e}, prominence {prominence:.1})"
-                ),
-            })
-        })?;
-        let mut maps = Vec::new();
-        let mut bandpass_planes = [PhasePlane {
-            a: 0.0,
-            b: 0.0,
-            c: 0.0,
-        }; 2];
-        for (k, lobe) in [lobe1, lobe2].iter().enumerate() {
-            let (plane, map) = bandpass::lobe_phase(
-                &spectrum,
-                (lobe.kx, lobe.ky),
-                params.sigma,
-                params.crop_factor,
-                &mut cache.bandpass,
-                params.keep_phase_maps,
-            )
-            .ok_or_else(|| Error::PatternNotFound("phase plane fit is degenerate".into()))?;
-            bandpass_planes[k] = plane;
-            maps.extend(map);
+        let refining = params.refine_iterations > 0;
+        let full_resolution = params.full_resolution_bandpass || !refining;
+        let binning = refining
+            && params.spectrum_binning
+            && !params.full_resolution_bandpass
+            && rows.min(cols) >= BINNING_MIN_SIDE;
+
+        // Coarse stage on the binned image when allowed, else (or if the grid is too fine for
+        // it) on the image itself.
+        let mut coarse = None;
+        if binning {
+            coarse = self.binned_estimate(image, params)?;
         }
-        let (planes, amplitudes, phase_std, quality, iterations) = if params.refine_iterations > 0 {
+        let coarse = match coarse {
+            Some(c) => c,
+            None => {
+                let cache = self.cache_for(rows, cols, params.sigma, full_resolution);
+                spectral_estimate(image.pixels(), cache, params)?
+            }
+        };
+        let (planes, amplitudes, phase_std, quality, iterations) = if refining {
+            let cache = self.cache_for(rows, cols, params.sigma, full_resolution);
             let r = refine::refine(
                 image.pixels(),
-                bandpass_planes,
-                &mut cache.refine,
+                coarse.planes,
+                cache.refine(),
                 params.refine_iterations,
             );
             // Each fundamental A·cos carries A²/2 of the variance; the offset's noise follows
@@ -307,19 +332,143 @@ impl PhaseEngine {
                 r.iterations,
             )
         } else {
-            (bandpass_planes, [f64::NAN; 2], [f64::NAN; 2], f64::NAN, 0)
+            (coarse.planes, [f64::NAN; 2], [f64::NAN; 2], f64::NAN, 0)
         };
-        let maps = <[PhaseMap; 2]>::try_from(maps).ok();
         Ok(PhaseAnalysis {
             size: (rows, cols),
             planes,
-            bandpass_planes,
-            lobes: [lobe1, lobe2],
+            bandpass_planes: coarse.planes,
+            lobes: coarse.lobes,
             amplitudes,
             phase_std,
             quality,
             iterations,
-            maps,
+            maps: coarse.maps,
         })
     }
+
+    /// Spectral stage on the 2×2-binned image, plus one refinement step there; planes returned
+    /// in the full image's frame. `None` when the grid is too fine for the binned image.
+    fn binned_estimate(
+        &mut self,
+        image: &GreyImage,
+        params: &PhaseParams,
+    ) -> Result<Option<SpectralEstimate>> {
+        let (rows, cols) = (image.height(), image.width());
+        let (rb, cb) = (rows / 2, cols / 2);
+        let cache = self.cache_for(rb, cb, params.sigma, false);
+        let mut binned = std::mem::take(&mut cache.binned);
+        bin_2x2(image.pixels(), cols, rb, cb, &mut binned);
+        let estimate = spectral_estimate(&binned, cache, params);
+        let result = match estimate {
+            Ok(mut e)
+                if e.planes
+                    .iter()
+                    .all(|p| p.pixel_period() >= BINNED_MIN_PERIOD) =>
+            {
+                // One cheap refinement step on the binned image brings the start point within
+                // ~1e-4 rad, so the full-size refinement usually needs a single step.
+                let r = refine::refine(&binned, e.planes, cache.refine(), 1);
+                e.planes = r.planes;
+                // Binned pixel i covers pixels 2i, 2i+1 (centre 2i + 0.5): change of frame.
+                let shift = |n: usize, nb: usize| ((n / 2) as f64 - 0.5) / 2.0 - (nb / 2) as f64;
+                let (sx, sy) = (shift(cols, cb), shift(rows, rb));
+                e.planes = e.planes.map(|p| {
+                    PhasePlane {
+                        a: p.a / 2.0,
+                        b: p.b / 2.0,
+                        c: p.c + p.a * sx + p.b * sy,
+                    }
+                    .with_wrapped_offset()
+                });
+                if let Some(maps) = e.maps.as_mut() {
+                    for m in maps.iter_mut() {
+                        m.step_x *= 2.0;
+                        m.step_y *= 2.0;
+                        m.offset = (0.5, 0.5);
+                    }
+                }
+                Ok(Some(e))
+            }
+            Ok(_) => Ok(None),
+            // Too weak after binning (or only one lobe left): let the full-size stage decide.
+            Err(Error::PatternNotFound(_)) => Ok(None),
+            Err(other) => Err(other),
+        };
+        cache.binned = binned;
+        result
+    }
+}
+
+/// 2×2 box average of a `cols`-wide image into `rb × cb` pixels (an odd last row/column is
+/// dropped).
+fn bin_2x2(pixels: &[f32], cols: usize, rb: usize, cb: usize, out: &mut Vec<f32>) {
+    out.clear();
+    out.reserve(rb * cb);
+    for r in 0..rb {
+        let (top, bottom) = (&pixels[2 * r * cols..], &pixels[(2 * r + 1) * cols..]);
+        out.extend(
+            (0..cb)
+                .map(|c| 0.25 * (top[2 * c] + top[2 * c + 1] + bottom[2 * c] + bottom[2 * c + 1])),
+        );
+    }
+}
+
+/// Spectrum, lobe search and band-pass planes (METHOD.md §4.2–4.6) of a `cache`-sized image.
+fn spectral_estimate(
+    pixels: &[f32],
+    cache: &mut SizeCache,
+    params: &PhaseParams,
+) -> Result<SpectralEstimate> {
+    let search = lobes::LobeSearch {
+        min_radius: params.min_frequency,
+        max_radius: params.max_frequency,
+        sigma: params.sigma,
+        min_peak_power: params.min_peak_power,
+        min_peak_prominence: params.min_peak_prominence,
+    };
+    // Borrow the two plans separately (the spectrum view borrows the spectrum plan).
+    cache.bandpass();
+    let (Some(spectrum_plan), Some(bandpass_plan)) = ({
+        cache.spectrum();
+        (cache.spectrum.as_mut(), cache.bandpass.as_mut())
+    }) else {
+        return Err(Error::PatternNotFound("internal: plans missing".into()));
+    };
+    let spectrum = spectrum_plan.forward(pixels);
+    let (lobe1, lobe2) = lobes::find_lobes(&spectrum, &search).map_err(|e| {
+        Error::PatternNotFound(match e {
+            lobes::LobeError::NoFirstPeak { power, prominence } => format!(
+                "no spectral lobe (strongest: power {power:.2e}, prominence {prominence:.1}; need > {:.1e} and ≥ {})",
+                params.min_peak_power, params.min_peak_prominence
+            ),
+            lobes::LobeError::NoSecondPeak { power, prominence } => format!(
+                "only one spectral lobe, no second grid direction (next: power {power:.2e}, prominence {prominence:.1})"
+            ),
+        })
+    })?;
+    let mut maps = Vec::new();
+    let mut planes = [PhasePlane {
+        a: 0.0,
+        b: 0.0,
+        c: 0.0,
+    }; 2];
+    for (k, lobe) in [lobe1, lobe2].iter().enumerate() {
+        let (plane, map) = bandpass::lobe_phase(
+            &spectrum,
+            (lobe.kx, lobe.ky),
+            params.sigma,
+            params.crop_factor,
+            bandpass_plan,
+            params.keep_phase_maps,
+        )
+        .ok_or_else(|| Error::PatternNotFound("phase plane fit is degenerate".into()))?;
+        planes[k] = plane;
+        maps.extend(map);
+    }
+    Ok(SpectralEstimate {
+        lobes: [lobe1, lobe2],
+        planes,
+        maps: <[PhaseMap; 2]>::try_from(maps).ok(),
+    })
 }
