@@ -324,56 +324,15 @@ pub(crate) fn refine(
                 *v *= phase_c;
             }
         }
-        // Normal equations G·θ = r of the linear model.
         let sums = CombinationSums::new(&planes, &plan.wx, &xs, &plan.wy, &ys);
-        let mut gram = nalgebra::SMatrix::<f64, UNKNOWNS, UNKNOWNS>::zeros();
-        let mut rhs = nalgebra::SVector::<f64, UNKNOWNS>::zeros();
-        gram[(0, 0)] = sum_w;
-        rhs[0] = sum_g;
-        for j in 1..UNKNOWNS {
-            let bj = basis(j);
-            let v = bj.z * sums.get(unit(bj.lobe, 1), bj.px, bj.py);
-            gram[(0, j)] = v.re;
-            gram[(j, 0)] = v.re;
-            // Σ w·g·p·Re(z·e^{iφ}) = Re(z·conj(M)).
-            rhs[j] = (bj.z * m[bj.lobe][bj.px + 2 * bj.py].conj()).re;
-            for k in j..UNKNOWNS {
-                let bk = basis(k);
-                let (px, py) = (bj.px + bk.px, bj.py + bk.py);
-                let (u, v) = (unit(bj.lobe, 1), unit(bk.lobe, 1));
-                let same = sums.get((u.0 + v.0, u.1 + v.1), px, py);
-                let opposite = sums.get((u.0 - v.0, u.1 - v.1), px, py);
-                // Re(a)·Re(b) = (Re(ab) + Re(a·conj b))/2.
-                let g = 0.5 * (bj.z * bk.z * same).re + 0.5 * (bj.z * bk.z.conj() * opposite).re;
-                gram[(j, k)] = g;
-                gram[(k, j)] = g;
-            }
-        }
-        let Some(theta) = gram.lu().solve(&rhs) else {
+        let moments = Moments { sum_w, sum_g, sum_g2, data: m };
+        let Some(step) = gauss_newton_step(&mut planes, &|c, px, py| sums.get(c, px, py), &moments, cols.max(rows) as f64)
+        else {
             break;
         };
-        residual = ((sum_g2 - theta.dot(&rhs)) / sum_w).max(0.0);
-        let mut largest_step: f64 = 0.0;
-        let extent = cols.max(rows) as f64;
-        for (l, plane) in planes.iter_mut().enumerate() {
-            let at = |k: usize| Cplx::new(theta[1 + 6 * l + 2 * k], theta[2 + 6 * l + 2 * k]);
-            let (amp, grad_x, grad_y) = (at(0), at(1), at(2));
-            if !(amp.norm() > 0.0 && amp.norm().is_finite()) {
-                continue;
-            }
-            let (dc, da, db) = (amp.arg(), (grad_x / amp).im, (grad_y / amp).im);
-            plane.a += da;
-            plane.b += db;
-            plane.c += dc;
-            amplitudes[l] = amp.norm();
-            largest_step = largest_step
-                .max(dc.abs())
-                .max(da.abs() * extent)
-                .max(db.abs() * extent);
-        }
-        // Gauss–Newton converges quadratically: after a step of s radians the remaining error
-        // is O(s²), so a step below 2e-5 rad leaves < 1e-9 rad and needs no check iteration.
-        if largest_step < 2e-5 {
+        amplitudes = step.amplitudes;
+        residual = step.residual;
+        if step.largest < CONVERGED_STEP {
             break;
         }
     }
@@ -383,6 +342,264 @@ pub(crate) fn refine(
         variance,
         residual,
         effective_pixels: sum_w * sum_w / sum_w2,
+        iterations,
+    }
+}
+
+/// Gauss–Newton converges quadratically: after a step of s radians the remaining error is
+/// O(s²), so a step below this leaves < 1e-9 rad and needs no check iteration.
+const CONVERGED_STEP: f64 = 2e-5;
+
+/// Weighted data sums entering the normal equations.
+struct Moments {
+    sum_w: f64,
+    sum_g: f64,
+    sum_g2: f64,
+    /// `Σ w·g·p·e^{−iφ_l}` for lobe l and p ∈ {1, x, y}.
+    data: [[Cplx; 3]; 2],
+}
+
+/// Outcome of one Gauss–Newton step.
+struct Step {
+    /// Largest correction, radians (slopes scaled by the image extent).
+    largest: f64,
+    amplitudes: [f64; 2],
+    residual: f64,
+}
+
+/// Assembles and solves the normal equations of the joint model and updates `planes`.
+///
+/// `weighted_exp(n, px, py)` returns `Σ w·x^px·y^py·e^{i(n0·φ0 + n1·φ1)}` under the fit's
+/// weights for the phase combinations of [`COMBOS`] (or their negatives).
+fn gauss_newton_step(
+    planes: &mut [PhasePlane; 2],
+    weighted_exp: &dyn Fn((i32, i32), usize, usize) -> Cplx,
+    moments: &Moments,
+    extent: f64,
+) -> Option<Step> {
+    let mut gram = nalgebra::SMatrix::<f64, UNKNOWNS, UNKNOWNS>::zeros();
+    let mut rhs = nalgebra::SVector::<f64, UNKNOWNS>::zeros();
+    gram[(0, 0)] = moments.sum_w;
+    rhs[0] = moments.sum_g;
+    for j in 1..UNKNOWNS {
+        let bj = basis(j);
+        let v = bj.z * weighted_exp(unit(bj.lobe, 1), bj.px, bj.py);
+        gram[(0, j)] = v.re;
+        gram[(j, 0)] = v.re;
+        // Σ w·g·p·Re(z·e^{iφ}) = Re(z·conj(M)).
+        rhs[j] = (bj.z * moments.data[bj.lobe][bj.px + 2 * bj.py].conj()).re;
+        for k in j..UNKNOWNS {
+            let bk = basis(k);
+            let (px, py) = (bj.px + bk.px, bj.py + bk.py);
+            let (u, v) = (unit(bj.lobe, 1), unit(bk.lobe, 1));
+            let same = weighted_exp((u.0 + v.0, u.1 + v.1), px, py);
+            let opposite = weighted_exp((u.0 - v.0, u.1 - v.1), px, py);
+            // Re(a)·Re(b) = (Re(ab) + Re(a·conj b))/2.
+            let g = 0.5 * (bj.z * bk.z * same).re + 0.5 * (bj.z * bk.z.conj() * opposite).re;
+            gram[(j, k)] = g;
+            gram[(k, j)] = g;
+        }
+    }
+    let theta = gram.lu().solve(&rhs)?;
+    let mut step = Step {
+        largest: 0.0,
+        amplitudes: [0.0; 2],
+        residual: ((moments.sum_g2 - theta.dot(&rhs)) / moments.sum_w).max(0.0),
+    };
+    for (l, plane) in planes.iter_mut().enumerate() {
+        let at = |k: usize| Cplx::new(theta[1 + 6 * l + 2 * k], theta[2 + 6 * l + 2 * k]);
+        let (amp, grad_x, grad_y) = (at(0), at(1), at(2));
+        if !(amp.norm() > 0.0 && amp.norm().is_finite()) {
+            return None;
+        }
+        let (dc, da, db) = (amp.arg(), (grad_x / amp).im, (grad_y / amp).im);
+        plane.a += da;
+        plane.b += db;
+        plane.c += dc;
+        step.amplitudes[l] = amp.norm();
+        step.largest = step.largest.max(dc.abs()).max(da.abs() * extent).max(db.abs() * extent);
+    }
+    Some(step)
+}
+
+/// `Σ a·b` of two `f32` rows, lane-parallel, `f64` result.
+#[inline(always)]
+fn dot_generic(a: &[f32], b: &[f32]) -> f64 {
+    const LANES: usize = 8;
+    let mut acc = [0.0f32; LANES];
+    let chunks = a.len().min(b.len()) / LANES;
+    for c in 0..chunks {
+        let base = c * LANES;
+        for lane in 0..LANES {
+            acc[lane] += a[base + lane] * b[base + lane];
+        }
+    }
+    let mut s: f64 = acc.iter().map(|&v| v as f64).sum();
+    for i in chunks * LANES..a.len().min(b.len()) {
+        s += a[i] as f64 * b[i] as f64;
+    }
+    s
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn dots_avx2(row: &[f32], kernels: &[f32], out: &mut [f64]) {
+    let n = row.len();
+    for (o, k) in out.iter_mut().zip(kernels.chunks_exact(n)) {
+        *o = dot_generic(row, k);
+    }
+}
+
+/// Dot products of `row` with each `row.len()`-long kernel of `kernels`, into `out`.
+fn dots(row: &[f32], kernels: &[f32], out: &mut [f64]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: the required CPU features were just detected.
+            return unsafe { dots_avx2(row, kernels, out) };
+        }
+    }
+    let n = row.len();
+    for (o, k) in out.iter_mut().zip(kernels.chunks_exact(n)) {
+        *o = dot_generic(row, k);
+    }
+}
+
+/// A usable weight: negative and NaN weights count as 0.
+fn finite_weight(w: f32) -> f32 {
+    if w.is_finite() && w > 0.0 {
+        w
+    } else {
+        0.0
+    }
+}
+
+/// As [`refine`], with a per-pixel weight map (row-major, `rows × cols`, values ≥ 0) multiplying
+/// the window: pixels that do not follow the periodic model (missing code dots, finder squares,
+/// frames) can be given weight 0 so that they do not bias the planes. The Gram matrix is then no
+/// longer separable and costs ~50 multiply-adds per pixel and iteration.
+pub(crate) fn refine_weighted(
+    pixels: &[f32],
+    weights: &[f32],
+    planes: [PhasePlane; 2],
+    plan: &mut RefinePlan,
+    max_iterations: usize,
+) -> Refined {
+    let (rows, cols) = (plan.rows, plan.cols);
+    let (cx, cy) = ((cols / 2) as f64, (rows / 2) as f64);
+    let xs: Vec<f64> = (0..cols).map(|i| i as f64 - cx).collect();
+    let ys: Vec<f64> = (0..rows).map(|j| j as f64 - cy).collect();
+    // Per-row buffers: the weight row w(x)·W(x, y) and the weighted data row.
+    let mut weight_row = vec![0.0f32; cols];
+    let mut data_row = vec![0.0f32; cols];
+    let (mut sum_w, mut sum_w2, mut sum_g, mut sum_g2) = (0.0, 0.0, 0.0, 0.0);
+    for j in 0..rows {
+        for x in 0..cols {
+            let w = plan.wx[x] * plan.wy[j] * finite_weight(weights[j * cols + x]) as f64;
+            let g = pixels[j * cols + x] as f64;
+            sum_w += w;
+            sum_w2 += w * w;
+            sum_g += w * g;
+            sum_g2 += w * g * g;
+        }
+    }
+    let mean = if sum_w > 0.0 { sum_g / sum_w } else { 0.0 };
+    let variance = if sum_w > 0.0 { (sum_g2 / sum_w - mean * mean).max(0.0) } else { 0.0 };
+    let mut planes = planes;
+    let mut amplitudes = [0.0; 2];
+    let mut residual = variance;
+    let mut iterations = 0;
+    // Kernels: data (per lobe e^{−iax}, x·e^{−iax}: 8 rows) and Gram (per combination k and
+    // power i ≤ 2, x^i·e^{iα_k x}: 42 rows), re and im parts interleaved by row.
+    let mut data_kernels = vec![0.0f32; 8 * cols];
+    let mut gram_kernels = vec![0.0f32; 2 * 3 * COMBOS.len() * cols];
+    let mut data_dots = [0.0f64; 8];
+    let mut gram_dots = vec![0.0f64; 2 * 3 * COMBOS.len()];
+    for _ in 0..max_iterations {
+        iterations += 1;
+        for (l, plane) in planes.iter().enumerate() {
+            for (x, &t) in xs.iter().enumerate() {
+                let e = Cplx::from_polar(1.0, -plane.a * t);
+                for (r, v) in [e.re, e.im, e.re * t, e.im * t].into_iter().enumerate() {
+                    data_kernels[(4 * l + r) * cols + x] = v as f32;
+                }
+            }
+        }
+        for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
+            let alpha = n0 as f64 * planes[0].a + n1 as f64 * planes[1].a;
+            for (x, &t) in xs.iter().enumerate() {
+                let e = Cplx::from_polar(1.0, alpha * t);
+                for i in 0..3 {
+                    let v = e * t.powi(i as i32);
+                    gram_kernels[((k * 3 + i) * 2) * cols + x] = v.re as f32;
+                    gram_kernels[((k * 3 + i) * 2 + 1) * cols + x] = v.im as f32;
+                }
+            }
+        }
+        let mut m = [[Cplx::default(); 3]; 2];
+        // table[k][i][j] = Σ W·x^i·y^j·e^{i(α_k x + β_k y)} for i + j ≤ 2.
+        let mut table = [[[Cplx::default(); 3]; 3]; 7];
+        for j in 0..rows {
+            let (y, wy) = (ys[j], plan.wy[j]);
+            for x in 0..cols {
+                let w = (plan.wx[x] * finite_weight(weights[j * cols + x]) as f64) as f32;
+                weight_row[x] = w;
+                data_row[x] = w * pixels[j * cols + x];
+            }
+            dots(&data_row, &data_kernels, &mut data_dots);
+            for (l, plane) in planes.iter().enumerate() {
+                let f = Cplx::from_polar(wy, -plane.b * y);
+                let s0 = Cplx::new(data_dots[4 * l], data_dots[4 * l + 1]);
+                let s1 = Cplx::new(data_dots[4 * l + 2], data_dots[4 * l + 3]);
+                m[l][0] += f * s0;
+                m[l][1] += f * s1;
+                m[l][2] += f * s0 * y;
+            }
+            dots(&weight_row, &gram_kernels, &mut gram_dots);
+            for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
+                let beta = n0 as f64 * planes[0].b + n1 as f64 * planes[1].b;
+                let f = Cplx::from_polar(wy, beta * y);
+                for i in 0..3 {
+                    let s = Cplx::new(gram_dots[(k * 3 + i) * 2], gram_dots[(k * 3 + i) * 2 + 1]) * f;
+                    for (jy, entry) in table[k][i].iter_mut().enumerate().take(3 - i) {
+                        *entry += s * y.powi(jy as i32);
+                    }
+                }
+            }
+        }
+        for (l, plane) in planes.iter().enumerate() {
+            let phase_c = Cplx::from_polar(1.0, -plane.c);
+            for v in m[l].iter_mut() {
+                *v *= phase_c;
+            }
+        }
+        let offsets: Vec<f64> =
+            COMBOS.iter().map(|&(n0, n1)| n0 as f64 * planes[0].c + n1 as f64 * planes[1].c).collect();
+        let weighted_exp = |(n0, n1): (i32, i32), px: usize, py: usize| -> Cplx {
+            for (k, &c) in COMBOS.iter().enumerate() {
+                if c == (n0, n1) || c == (-n0, -n1) {
+                    let v = Cplx::from_polar(1.0, offsets[k]) * table[k][px][py];
+                    return if c == (n0, n1) { v } else { v.conj() };
+                }
+            }
+            Cplx::default()
+        };
+        let moments = Moments { sum_w, sum_g, sum_g2, data: m };
+        let Some(step) = gauss_newton_step(&mut planes, &weighted_exp, &moments, cols.max(rows) as f64) else {
+            break;
+        };
+        amplitudes = step.amplitudes;
+        residual = step.residual;
+        if step.largest < CONVERGED_STEP {
+            break;
+        }
+    }
+    Refined {
+        planes: planes.map(|p| p.with_wrapped_offset()),
+        amplitudes,
+        variance,
+        residual,
+        effective_pixels: if sum_w2 > 0.0 { sum_w * sum_w / sum_w2 } else { 0.0 },
         iterations,
     }
 }

@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# The whole test suite: formatting, lints, every workspace test (unit, synthetic round trips,
+# real images from $VERNIER_DATA_DIR, default ../shared/data, independent readers and DDS peer
+# from the ignored .venv/), and a build check of the optional features.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+export VERNIER_DATA_DIR="${VERNIER_DATA_DIR:-$root/../shared/data}"
+if [ ! -d "$VERNIER_DATA_DIR" ]; then
+    echo "test data not found at $VERNIER_DATA_DIR (set VERNIER_DATA_DIR)" >&2
+    exit 1
+fi
+
+# System packages the tests need (Debian): a C compiler and Python's venv module.
+need=()
+command -v cc >/dev/null 2>&1 || need+=(build-essential)
+python3 -c "import ensurepip, venv" >/dev/null 2>&1 || need+=(python3-venv)
+if [ "${#need[@]}" -gt 0 ]; then
+    sudo_cmd=""; [ "$(id -u)" -ne 0 ] && sudo_cmd="sudo"
+    $sudo_cmd apt-get update -qq && $sudo_cmd apt-get install -y -qq "${need[@]}"
+fi
+rustup component add rustfmt clippy >/dev/null 2>&1 || true
+
+bash scripts/setup_test_tools.sh
+
+echo "== cargo fmt --check"
+cargo fmt --all -- --check
+echo "== cargo clippy -D warnings"
+cargo clippy --workspace --all-targets --locked -- -D warnings
+echo "== cargo test"
+cargo test --workspace --locked
