@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The whole test suite: formatting, lints, every workspace test (unit, synthetic round trips,
 # real images from $VERNIER_DATA_DIR, default ../shared/data, independent readers and DDS peer
-# from the ignored .venv/), and a build check of the optional features.
+# from the ignored .venv/) and the ROS 2 node's interoperability test against Cyclone DDS.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -15,6 +15,8 @@ fi
 need=()
 command -v cc >/dev/null 2>&1 || need+=(build-essential)
 python3 -c "import ensurepip, venv" >/dev/null 2>&1 || need+=(python3-venv)
+command -v ip >/dev/null 2>&1 || need+=(iproute2)
+command -v unshare >/dev/null 2>&1 || need+=(util-linux)
 if [ "${#need[@]}" -gt 0 ]; then
     sudo_cmd=""; [ "$(id -u)" -ne 0 ] && sudo_cmd="sudo"
     $sudo_cmd apt-get update -qq && $sudo_cmd apt-get install -y -qq "${need[@]}"
@@ -29,3 +31,5 @@ echo "== cargo clippy -D warnings"
 cargo clippy --workspace --all-targets --locked -- -D warnings
 echo "== cargo test"
 cargo test --workspace --locked
+echo "== ROS 2 node against an independent DDS (Cyclone DDS)"
+VERNIER_ROS_PROFILE=test bash test/run_interop.sh

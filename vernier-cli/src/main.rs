@@ -1,15 +1,21 @@
-//! `vernier`: detect markers in image files, render synthetic images.
+//! `vernier`: detect markers in image files, render synthetic images, export layouts.
 //!
 //! Every failure prints one line `vernier: <what went wrong>` on stderr and exits non-zero.
 
-use clap::{Parser, Subcommand, ValueEnum};
+mod bag;
+mod batch;
+mod export_cmd;
+mod inputs;
+mod plot;
+mod pose_table;
+
+use clap::{Parser, Subcommand};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::Instant;
 use vernier::detector::{DetectorSettings, MarkerKind};
 use vernier::pattern_file::Pattern;
 use vernier::render::{render, RenderOptions, Sampling};
-use vernier::{Detector, GreyImage, MarkerPose, Polarity, Pose};
+use vernier::{Detector, Polarity, Pose};
 
 #[derive(Parser)]
 #[command(
@@ -28,14 +34,12 @@ enum Command {
     Detect(DetectArgs),
     /// Render a synthetic image of a pattern at a known pose.
     Render(RenderArgs),
-}
-
-#[derive(Clone, Copy, ValueEnum)]
-enum Format {
-    /// One JSON object per image.
-    Json,
-    /// One CSV row per image and marker.
-    Csv,
+    /// Export a pattern file's layout for fabrication or documentation (PNG, SVG, GDSII, OASIS).
+    Export(export_cmd::ExportArgs),
+    /// Plot a pose table (from `detect` or `bag`): pose over time and Allan deviation.
+    Plot(plot::PlotArgs),
+    /// Replay a rosbag2 MCAP recording through the detector (poses to MCAP, CSV or JSON Lines).
+    Bag(bag::BagArgs),
 }
 
 #[derive(Parser)]
@@ -56,7 +60,7 @@ struct DetectArgs {
     #[arg(long)]
     stamp: bool,
     /// Physical period of the dot grid, pattern units (µm by convention).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     period: Option<f64>,
     /// HP code width in half-period cells (33, 37, ...).
     #[arg(long)]
@@ -70,13 +74,15 @@ struct DetectArgs {
     /// Stamp bitmap PNG files (1 = dot), in ID order; repeat the flag for several.
     #[arg(long)]
     bitmap: Vec<PathBuf>,
-    /// Output format.
+    /// Output format: `json` (one object per image), or `csv` / `jsonl` (one row per image
+    /// and marker, time-series columns of vernier-cli/src/pose_table.rs).
     #[arg(long, value_enum, default_value = "json")]
-    format: Format,
+    format: pose_table::TableFormat,
     /// Dot polarity: `bright` dots on a dark background or `dark` dots on a bright one.
     #[arg(long, default_value = "bright")]
     polarity: Polarity,
-    /// Image files (PNG, JPEG, TIFF, PNM; 8/16-bit grey or colour).
+    /// Image files (PNG, JPEG, TIFF, PNM; 8/16-bit grey or colour), folders (their image
+    /// files) or quoted glob patterns (`'run1/*.png'`, `'**/*.tif'`), in natural order.
     #[arg(required = true)]
     images: Vec<PathBuf>,
 }
@@ -90,7 +96,7 @@ struct RenderArgs {
     #[arg(long, allow_hyphen_values = true)]
     pose: String,
     /// Pattern units per pixel.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pixel_size: f64,
     /// Image size `WIDTHxHEIGHT` in pixels.
     #[arg(long)]
@@ -115,10 +121,30 @@ struct RenderArgs {
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        // --help and --version are not errors: clap prints them as usual.
+        Err(e) if !e.use_stderr() => {
+            let _ = e.print();
+            return ExitCode::SUCCESS;
+        }
+        // Usage errors: one line, like every other failure.
+        Err(e) => {
+            let rendered = e.render().to_string();
+            let first = rendered.lines().next().unwrap_or("invalid arguments");
+            eprintln!(
+                "vernier: {} (see `vernier --help`)",
+                first.trim_start_matches("error: ")
+            );
+            return ExitCode::from(2);
+        }
+    };
     let result = match cli.command {
         Command::Detect(args) => detect(&args),
         Command::Render(args) => render_image(&args),
+        Command::Export(args) => export_cmd::run(&args),
+        Command::Plot(args) => plot::run(&args),
+        Command::Bag(args) => bag::run(&args),
     };
     match result {
         Ok(code) => code,
@@ -155,89 +181,13 @@ fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
     };
     let config = settings.to_config().map_err(|e| e.to_string())?;
     let mut detector = Detector::new(config).map_err(|e| e.to_string())?;
-    let mut failures = 0usize;
-    if let Format::Csv = args.format {
-        println!("image,id,x,y,z,alpha,beta,gamma,pixel_size,x_px,y_px,quality,time_ms,error");
-    }
-    for path in &args.images {
-        let start = Instant::now();
-        let result = GreyImage::open(path).and_then(|image| detector.detect(&image));
-        let time_ms = start.elapsed().as_secs_f64() * 1e3;
-        if let Err(e) = &result {
-            eprintln!("vernier: {}: {e}", path.display());
-            failures += 1;
-        }
-        match args.format {
-            Format::Json => println!("{}", json_line(path, &result, time_ms)),
-            Format::Csv => print_csv(path, &result, time_ms),
-        }
-    }
+    let images = inputs::expand_inputs(&args.images)?;
+    let failures = batch::detect_files(&mut detector, &images, args.format)?;
     Ok(if failures == 0 {
         ExitCode::SUCCESS
     } else {
         ExitCode::FAILURE
     })
-}
-
-fn marker_json(m: &MarkerPose) -> serde_json::Value {
-    serde_json::json!({
-        "id": m.id,
-        "x": m.pose.x, "y": m.pose.y, "z": m.pose.z,
-        "alpha": m.pose.alpha, "beta": m.pose.beta, "gamma": m.pose.gamma,
-        "pixel_size": m.pose.pixel_size,
-        "x_px": m.origin_px.x, "y_px": m.origin_px.y,
-        "quality": m.quality,
-        "duplicate_id": m.duplicate_id,
-    })
-}
-
-fn json_line(path: &Path, result: &vernier::Result<Vec<MarkerPose>>, time_ms: f64) -> String {
-    let mut object = serde_json::json!({
-        "image": path.display().to_string(),
-        "markers": result.as_ref().map(|ms| ms.iter().map(marker_json).collect::<Vec<_>>()).unwrap_or_default(),
-        "time_ms": time_ms,
-    });
-    if let Err(e) = result {
-        object["error"] = serde_json::Value::String(e.to_string());
-    }
-    object.to_string()
-}
-
-fn csv_field(s: &str) -> String {
-    if s.contains([',', '"', '\n']) {
-        format!("\"{}\"", s.replace('"', "\"\""))
-    } else {
-        s.to_string()
-    }
-}
-
-fn print_csv(path: &Path, result: &vernier::Result<Vec<MarkerPose>>, time_ms: f64) {
-    let image = csv_field(&path.display().to_string());
-    match result {
-        Ok(markers) => {
-            for m in markers {
-                let p = &m.pose;
-                println!(
-                    "{image},{},{},{},{},{},{},{},{},{},{},{},{time_ms:.3},",
-                    m.id,
-                    p.x,
-                    p.y,
-                    p.z,
-                    p.alpha,
-                    p.beta,
-                    p.gamma,
-                    p.pixel_size,
-                    m.origin_px.x,
-                    m.origin_px.y,
-                    m.quality
-                );
-            }
-        }
-        Err(e) => println!(
-            "{image},,,,,,,,,,,,{time_ms:.3},{}",
-            csv_field(&e.to_string())
-        ),
-    }
 }
 
 fn parse_numbers(

@@ -5,9 +5,13 @@
 
 use crate::error::{Error, Result};
 use crate::grey_image::GreyImage;
+use crate::hpcode::{HpCodeDetector, HpCodeParams};
+use crate::megarena::{MegarenaDetector, MegarenaParams};
+use crate::megarena_sequence::LineSequence;
 use crate::pattern_file::Pattern;
 use crate::periodic::{PeriodicDetector, PeriodicParams};
 use crate::pose::Pose;
+use crate::stamp::{StampDetector, StampParams};
 use nalgebra::Vector2;
 
 /// One detected marker, in the units of the pattern (µm by convention) and radians.
@@ -143,10 +147,62 @@ impl DetectorSettings {
                 p.polarity = self.polarity;
                 Ok(DetectorConfig::Periodic(p))
             }
-            other => Err(Error::parameter(
-                "pattern_type",
-                format!("{other:?} detection is not implemented yet"),
-            )),
+            MarkerKind::Megarena => {
+                // An explicit code depth wins over the pattern file's sequence.
+                let sequence = match (self.code_depth, &pattern) {
+                    (Some(depth), _) => LineSequence::generated(depth)
+                        .map_err(|e| Error::parameter("code_depth", e.to_string()))?,
+                    (None, Some(Pattern::Megarena(layout))) => layout.sequence().clone(),
+                    (None, _) => {
+                        return Err(Error::parameter(
+                            "code_depth",
+                            "required for Megarena patterns (give it or a pattern file)",
+                        ))
+                    }
+                };
+                let mut p = MegarenaParams::with_sequence(require_period()?, sequence);
+                p.polarity = self.polarity;
+                Ok(DetectorConfig::Megarena(p))
+            }
+            MarkerKind::HpCode => {
+                // W from the flag, else from an HPCodePattern file (`size` dots → 2·size − 1).
+                let half_periods = match (self.code_size, &pattern) {
+                    (Some(w), _) => w,
+                    (None, Some(Pattern::HpCode(layout))) => layout.half_periods(),
+                    (None, _) => {
+                        return Err(Error::parameter(
+                            "code_size",
+                            "required for HP codes: width in half periods, e.g. 33 or 37",
+                        ))
+                    }
+                };
+                let mut p = HpCodeParams::new(require_period()?, half_periods);
+                p.window_size = self.window_size;
+                p.polarity = Some(self.polarity);
+                p.validate()?;
+                Ok(DetectorConfig::HpCode(p))
+            }
+            MarkerKind::Stamp => {
+                // ID order: the pattern file's bitmap first, then the bitmap files.
+                let period = require_period()?;
+                let mut bitmaps = Vec::new();
+                if let Some(Pattern::Bitmap(layout)) = &pattern {
+                    bitmaps.push(layout.clone());
+                }
+                for path in &self.bitmaps {
+                    bitmaps.push(crate::layout::BitmapLayout::from_image_file(period, path)?);
+                }
+                if bitmaps.is_empty() {
+                    return Err(Error::parameter(
+                        "bitmaps",
+                        "stamp detection needs a bitmap (PNG file) or a BitmapPattern file",
+                    ));
+                }
+                let mut p = StampParams::new(period, bitmaps);
+                p.window_size = self.window_size;
+                p.polarity = self.polarity;
+                Ok(DetectorConfig::Stamp(p))
+            }
         }
     }
 }
@@ -156,6 +212,12 @@ impl DetectorSettings {
 pub enum DetectorConfig {
     /// Plain periodic grid: pose modulo one period and 90°.
     Periodic(PeriodicParams),
+    /// Megarena absolute encoded grid: absolute pose over the whole pattern.
+    Megarena(MegarenaParams),
+    /// Stamp / bitmap markers: identity (bitmap index) and absolute pose of each.
+    Stamp(StampParams),
+    /// HP code markers: decoded ID and absolute pose of each.
+    HpCode(HpCodeParams),
 }
 
 impl DetectorConfig {
@@ -163,6 +225,9 @@ impl DetectorConfig {
     pub fn period(&self) -> f64 {
         match self {
             DetectorConfig::Periodic(p) => p.period,
+            DetectorConfig::Megarena(p) => p.period,
+            DetectorConfig::Stamp(p) => p.period,
+            DetectorConfig::HpCode(p) => p.period,
         }
     }
 }
@@ -174,6 +239,9 @@ pub struct Detector {
 
 enum Inner {
     Periodic(PeriodicDetector),
+    Megarena(Box<MegarenaDetector>),
+    Stamp(Box<StampDetector>),
+    HpCode(Box<HpCodeDetector>),
 }
 
 impl Detector {
@@ -181,6 +249,9 @@ impl Detector {
     pub fn new(config: DetectorConfig) -> Result<Self> {
         let inner = match config {
             DetectorConfig::Periodic(p) => Inner::Periodic(PeriodicDetector::new(p)?),
+            DetectorConfig::Megarena(p) => Inner::Megarena(Box::new(MegarenaDetector::new(p)?)),
+            DetectorConfig::Stamp(p) => Inner::Stamp(Box::new(StampDetector::new(p)?)),
+            DetectorConfig::HpCode(p) => Inner::HpCode(Box::new(HpCodeDetector::new(p)?)),
         };
         Ok(Detector { inner })
     }
@@ -201,6 +272,52 @@ impl Detector {
                     duplicate_id: false,
                     decode_confidence: None,
                 }])
+            }
+            Inner::Megarena(d) => {
+                let found = d.detect(image)?;
+                Ok(vec![MarkerPose {
+                    id: 0,
+                    pose: found.pose,
+                    origin_px: found.origin_px,
+                    quality: found.analysis.quality,
+                    phase_std: found.analysis.phase_std,
+                    duplicate_id: false,
+                    decode_confidence: Some(found.decode_confidence),
+                }])
+            }
+            Inner::Stamp(d) => {
+                let mut markers: Vec<MarkerPose> = d
+                    .detect(image)?
+                    .into_iter()
+                    .map(|found| MarkerPose {
+                        id: found.id as u64,
+                        pose: found.pose,
+                        origin_px: found.origin_px,
+                        quality: found.analysis.quality,
+                        phase_std: found.analysis.phase_std,
+                        duplicate_id: false,
+                        decode_confidence: Some(found.decode_confidence),
+                    })
+                    .collect();
+                flag_duplicate_ids(&mut markers);
+                Ok(markers)
+            }
+            Inner::HpCode(d) => {
+                let mut markers: Vec<MarkerPose> = d
+                    .detect(image)?
+                    .into_iter()
+                    .map(|found| MarkerPose {
+                        id: found.id,
+                        pose: found.pose,
+                        origin_px: found.origin_px,
+                        quality: found.analysis.quality,
+                        phase_std: found.analysis.phase_std,
+                        duplicate_id: false,
+                        decode_confidence: Some(found.id_confidence),
+                    })
+                    .collect();
+                flag_duplicate_ids(&mut markers);
+                Ok(markers)
             }
         }
     }

@@ -52,6 +52,10 @@ pub enum Error {
     /// The phase engine found no periodic pattern (spectral lobes too weak or absent).
     #[error("no periodic pattern found: {0}")]
     PatternNotFound(String),
+    /// A grid was found but its code could not be read reliably (too few periods visible,
+    /// inconsistent or ambiguous bits): no pose is reported rather than a wrong one.
+    #[error("cannot decode the marker: {0}")]
+    Decode(String),
     /// Filesystem error other than image decoding.
     #[error("{path}: {source}")]
     Io {

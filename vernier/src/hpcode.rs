@@ -1,1 +1,508 @@
-//! (in progress)
+//! HP code detector (METHOD.md §5.2): every HP code marker in an image, with its ID and
+//! absolute pose.
+//!
+//! Pipeline, one module per step:
+//! 1. [`finders`]: finder squares from signed 1-D edges of every row and column, thresholds
+//!    from the image's gradient statistics, polarity from the edge signs;
+//! 2. [`grouping`]: triples of finders that fit the marker geometry (right angle, equal legs
+//!    `W − 7` modules long); leftovers are ignored;
+//! 3. a window holding only the marker's dot grid (inside the marker, clear of the finders)
+//!    around the coarse centre, [`PhaseEngine::analyze`] (refined planes); a radial Hann
+//!    apodisation only for windows larger than the marker (the original's 256/512 px);
+//! 4. [`fine`]: planes assigned to the pattern axes seen by the finders (full `(−π, π]`
+//!    orientation), marker width measured in whole periods, centre = grid point nearest to the
+//!    coarse centre (no half-period limit); then a second analysis on the window the measured
+//!    centre and size call for, so the result does not depend on the coarse stage;
+//! 5. [`marker_id`]: ID read at the measured dot positions; a mirrored marker (seen from its
+//!    back, or a flipped image) is recognised from where its ID dots are.
+//!
+//! Poses follow METHOD.md §6: `(x, y) = Rz(−α)·(camera-frame position of the centre dot)`,
+//! pattern units. A mirrored marker is reported with `gamma = −π` (rotation by π about the
+//! pattern x axis: the marker seen from behind), which keeps `cTp` a proper rigid transform.
+
+pub mod finders;
+pub(crate) mod fine;
+pub mod grouping;
+pub(crate) mod marker_id;
+
+pub use finders::Finder;
+pub use grouping::{group_finders, FinderTriple};
+
+use crate::error::{Error, Result};
+use crate::grey_image::{GreyImage, Polarity};
+use crate::phase::{wrap_angle, PhaseAnalysis, PhaseEngine, PhaseParams};
+use crate::pose::{rotate2, Pose};
+use finders::FinderScanner;
+use nalgebra::Vector2;
+use std::f64::consts::{FRAC_PI_2, PI, TAU};
+
+/// Smallest analysis window side, pixels.
+const MIN_WINDOW: usize = 32;
+/// Clearance kept by the automatic window from the finders and the marker edge, modules.
+const WINDOW_CLEARANCE: f64 = 0.5;
+
+/// Settings of [`HpCodeDetector`] (METHOD.md §7 "HP detector").
+#[derive(Clone, Debug, PartialEq)]
+pub struct HpCodeParams {
+    /// Physical period `P` of the dot grid, pattern units (µm by convention). Must be > 0.
+    pub period: f64,
+    /// Nominal marker width in half-period cells `W = 2n − 1` (the original's
+    /// "numberHalfPeriods", CLI `--code-size`): `W ≡ 1 (mod 4)`, ≥ 17; 33 and 37 in practice.
+    /// A prior: markers whose finders are `W' − 7` modules apart for any odd `W'` within 8
+    /// cells of `W` are accepted, and `W'` is measured (reported in
+    /// [`HpCodeMarker::half_periods`]); the ID layout follows `W'`.
+    pub half_periods: usize,
+    /// Side of the square window analysed around each marker, pixels (even, ≥ 32). `None`
+    /// (default) sizes it for each marker: the largest FFT-friendly size (`2^a·3^b·5^c`) that
+    /// stays inside the marker and clear of its finders at the marker's angle (0.55–0.7 marker
+    /// widths), so the window holds nothing but the marker's dot grid.
+    /// The original's examples use 256 or 512 (more than the marker: background and clutter
+    /// enter, hence [`HpCodeParams::apodize`]).
+    pub window_size: Option<usize>,
+    /// Multiply the window by the radial Hann window `(1 + cos(π·d/ρ))/2`, `ρ` = half the side
+    /// (METHOD.md §5.2.3 step 2). `None` (default): only when the window is larger than the
+    /// automatic one, i.e. reaches beyond the marker (without it, the background and clutter of
+    /// e.g. a 512-px window on Image96 hide the marker's grid). Inside the marker the phase
+    /// engine's refinement applies its own separable window, and the radial Hann on top of it
+    /// degrades the orientation from ~1e-8 to ~1e-5 rad on noise-free renders (measured).
+    /// The original's band-pass planes need it ([`HpCodeParams::original`]).
+    pub apodize: Option<bool>,
+    /// Dot polarity. `None` (default) takes each marker's polarity from its finder squares;
+    /// `Some(p)` only accepts markers of polarity `p`.
+    pub polarity: Option<Polarity>,
+    /// Minimum central difference `|v[i+1] − v[i−1]|` of a finder edge, intensity units
+    /// (`[0, 1]` images). `None` (default) chooses it per image: the larger of 5 robust
+    /// noise deviations and 10 % of the strong edges (99.9th percentile), at least 0.01.
+    pub edge_threshold: Option<f64>,
+    /// Phase-engine settings used on each window.
+    pub phase: PhaseParams,
+    /// How orientation, pixel size and position follow from the two planes.
+    pub pose_formula: PoseFormula,
+}
+
+/// How the pose of a marker follows from its two phase planes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PoseFormula {
+    /// Symmetric in the two grid axes, hence covariant under image rotations and flips
+    /// (default): final window placed symmetrically about the pixel corner nearest the
+    /// measured centre, `alpha` the mean direction of the two pattern axes (a quarter turn
+    /// apart), pixel size from the mean frequency of both planes, centre where both planes take
+    /// the centre's phase.
+    #[default]
+    Symmetric,
+    /// The original's formulas (METHOD.md §5.2.3 steps 1, 4–5): window centred on the
+    /// truncated coarse centre, `alpha` and pixel size from the
+    /// engine's plane 1 (the lobe whose direction is in `[0, π/2)`, whichever marker axis it
+    /// is), position `ps·Rz(−α)·(window centre) − P·c/2π`, here with the whole-period shift
+    /// of the centre added. Use with [`HpCodeParams::original`] to reproduce its numbers.
+    Original,
+}
+
+impl HpCodeParams {
+    /// Defaults for markers `half_periods` cells wide with physical period `period`.
+    pub fn new(period: f64, half_periods: usize) -> Self {
+        HpCodeParams {
+            period,
+            half_periods,
+            window_size: None,
+            apodize: None,
+            polarity: None,
+            edge_threshold: None,
+            phase: PhaseParams::default(),
+            pose_formula: PoseFormula::Symmetric,
+        }
+    }
+
+    /// Settings that reproduce the original's numbers (METHOD.md §5.2.3, §8): window of
+    /// `window_size` pixels, band-pass phase planes without refinement (§4.3–4.6, ring
+    /// band-pass from 20 bins) and [`PoseFormula::Original`]. Its result moves by up to
+    /// ~3e-3 rad with the window size on real images (Image96: 320 to 640 px), about 10 times
+    /// more than the default's.
+    pub fn original(period: f64, half_periods: usize, window_size: usize) -> Self {
+        let mut p = HpCodeParams::new(period, half_periods);
+        p.window_size = Some(window_size);
+        p.apodize = Some(true);
+        p.phase.refine_iterations = 0;
+        p.phase.min_frequency = 20.0;
+        p.pose_formula = PoseFormula::Original;
+        p
+    }
+
+    /// Checks every field, naming the first invalid one.
+    pub fn validate(&self) -> Result<()> {
+        if !(self.period.is_finite() && self.period > 0.0) {
+            return Err(Error::parameter(
+                "period",
+                format!("must be > 0, got {}", self.period),
+            ));
+        }
+        if self.half_periods % 4 != 1 || self.half_periods < 17 {
+            return Err(Error::parameter(
+                "code_size",
+                format!(
+                    "HP code width in half periods must be ≡ 1 (mod 4) and ≥ 17 (33, 37, ...), got {}",
+                    self.half_periods
+                ),
+            ));
+        }
+        if let Some(s) = self.window_size {
+            if s % 2 != 0 || s < MIN_WINDOW {
+                return Err(Error::parameter(
+                    "window_size",
+                    format!("must be even and ≥ {MIN_WINDOW} pixels, got {s}"),
+                ));
+            }
+        }
+        if let Some(t) = self.edge_threshold {
+            if !(t.is_finite() && t > 0.0) {
+                return Err(Error::parameter(
+                    "edge_threshold",
+                    format!("must be > 0, got {t}"),
+                ));
+            }
+        }
+        self.phase.validate()
+    }
+}
+
+/// One HP code marker found in an image.
+#[derive(Clone, Debug)]
+pub struct HpCodeMarker {
+    /// Decoded ID: bit `k` is 1 when the top-row dot `k` places from the top-right finder is
+    /// missing (METHOD.md §1.4).
+    pub id: u64,
+    /// Measured marker width in half-period cells `W` (odd; the setting is only a prior).
+    pub half_periods: usize,
+    /// Pose of the marker, METHOD.md §6. Pattern origin: the marker centre, i.e. the centre
+    /// dot (`W ≡ 1 mod 4`) or the gap between the four central dots (`W ≡ 3 mod 4`).
+    pub pose: Pose,
+    /// Image position `(col, row)` of the marker centre, pixels.
+    pub origin_px: Vector2<f64>,
+    /// Polarity of the marker (from its finders, or the setting).
+    pub polarity: Polarity,
+    /// The marker is seen mirrored (from its back side): `pose.gamma = −π`.
+    pub mirrored: bool,
+    /// ID confidence in `[0, 1]`: the smallest margin of an ID (or left column) dot to the
+    /// present/absent threshold, in units of half the dot contrast.
+    pub id_confidence: f64,
+    /// The three finders, `right`/`bottom` as in the pattern (after mirror resolution).
+    pub finders: FinderTriple,
+    /// Image pixel `(col, row)` at the analysis window's centre index and the window side.
+    pub window: ((i64, i64), usize),
+    /// Phase-engine output on the window (planes in the window frame).
+    pub analysis: PhaseAnalysis,
+}
+
+/// Detects HP code markers. Keeps the phase engine's FFT plans and the finder scanner's buffers
+/// between frames.
+pub struct HpCodeDetector {
+    params: HpCodeParams,
+    engine: PhaseEngine,
+    scanner: FinderScanner,
+    /// Radial Hann window of the last size and centre used.
+    hann: (usize, f64, Vec<f32>),
+}
+
+impl HpCodeDetector {
+    /// A detector with `params` (validated).
+    pub fn new(params: HpCodeParams) -> Result<Self> {
+        params.validate()?;
+        Ok(HpCodeDetector {
+            params,
+            engine: PhaseEngine::new(),
+            scanner: FinderScanner::default(),
+            hann: (0, 0.0, Vec::new()),
+        })
+    }
+
+    /// Current settings.
+    pub fn params(&self) -> &HpCodeParams {
+        &self.params
+    }
+
+    /// Finder squares of `image` (step 1 only), filtered by the polarity setting.
+    pub fn find_finders(&mut self, image: &GreyImage) -> Vec<Finder> {
+        let mut finders = self.scanner.find(image, self.params.edge_threshold);
+        if let Some(p) = self.params.polarity {
+            finders.retain(|f| f.polarity == p);
+        }
+        finders
+    }
+
+    /// Every marker of `image`, in order of decreasing geometric fit of their finders. An image
+    /// without markers gives an empty list. Markers sharing an ID are all returned.
+    pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<HpCodeMarker>> {
+        let finders = self.find_finders(image);
+        let triples = group_finders(&finders, self.params.half_periods);
+        let mut markers = Vec::with_capacity(triples.len());
+        for triple in &triples {
+            if let Some(m) = self.measure(image, triple)? {
+                markers.push(m);
+            }
+        }
+        Ok(markers)
+    }
+
+    /// Window side for the marker of `triple` (finders' estimate).
+    fn window_size(&self, triple: &FinderTriple) -> usize {
+        self.params
+            .window_size
+            .unwrap_or_else(|| auto_window_for(triple))
+    }
+
+    /// Window (centre pixel at index S/2, side `size`) around `center` (image pixels), its
+    /// phase planes and the marker grid they give; `None` when the grid does not fit `triple`.
+    fn analyze_window(
+        &mut self,
+        image: &GreyImage,
+        triple: &FinderTriple,
+        center: Vector2<f64>,
+        size: usize,
+    ) -> Result<Option<WindowResult>> {
+        let (index_center, hann_center) = match self.params.pose_formula {
+            PoseFormula::Symmetric => (window_center(center), (size as f64 - 1.0) / 2.0),
+            // The original: index S/2 on the truncated coarse centre.
+            PoseFormula::Original => (
+                (center.x.floor() as i64, center.y.floor() as i64),
+                (size / 2) as f64,
+            ),
+        };
+        // Automatic windows stay inside the marker; a given one may reach beyond it.
+        let hann = self
+            .params
+            .apodize
+            .unwrap_or_else(|| self.params.window_size.is_some() && size > auto_window_for(triple));
+        let hann_center = hann.then_some(hann_center);
+        let window = self.window_image(image, index_center, size, triple.polarity, hann_center)?;
+        let analysis = match self.engine.analyze(&window, &self.params.phase) {
+            Ok(a) => a,
+            Err(Error::PatternNotFound(_)) => return Ok(None),
+            Err(e) => return Err(e),
+        };
+        let origin = Vector2::new(index_center.0 as f64, index_center.1 as f64);
+        Ok(fine::locate(&analysis.planes, triple, origin)
+            .map(|grid| (index_center, analysis, grid)))
+    }
+
+    /// Fine measurement of one finder triple; `None` when the window's grid does not confirm
+    /// the marker or its ID cannot be read.
+    fn measure(
+        &mut self,
+        image: &GreyImage,
+        triple: &FinderTriple,
+    ) -> Result<Option<HpCodeMarker>> {
+        let coarse = triple.center();
+        if !(coarse.x.is_finite() && coarse.y.is_finite()) {
+            return Ok(None);
+        }
+        let size = self.window_size(triple);
+        let Some(mut found) = self.analyze_window(image, triple, coarse, size)? else {
+            return Ok(None);
+        };
+        if self.params.pose_formula == PoseFormula::Symmetric {
+            // Second pass on the window the measured centre and width call for, when the
+            // finders' estimate chose another: the result then depends on the fine geometry
+            // only, not on the coarse one (stable from frame to frame, exactly covariant under
+            // image rotations and flips).
+            let fine = found.2.dots;
+            let module = (fine.step_x.norm() + fine.step_y.norm()) / 4.0;
+            let size2 = self.params.window_size.unwrap_or_else(|| {
+                let width = found.2.half_periods as f64 * module;
+                auto_window_size(width, module, found.2.alpha(false))
+            });
+            if window_center(fine.center) != found.0 || size2 != size {
+                if let Some(second) = self.analyze_window(image, triple, fine.center, size2)? {
+                    found = second;
+                }
+            }
+        }
+        let (center, analysis, grid) = found;
+        let size = analysis.size.1;
+        let window_center = Vector2::new(center.0 as f64, center.1 as f64);
+        let Some(reading) = marker_id::read_id(image, triple.polarity, &grid.dots) else {
+            return Ok(None);
+        };
+        let (finders, grid) = if reading.mirrored {
+            let mirrored = triple.mirrored();
+            match fine::locate(&analysis.planes, &mirrored, window_center) {
+                Some(g) => (mirrored, g),
+                None => return Ok(None),
+            }
+        } else {
+            (*triple, grid)
+        };
+        let (icx, icy) = image.center();
+        let image_center = Vector2::new(icx as f64, icy as f64);
+        let pose = self.pose(
+            &grid,
+            &analysis,
+            window_center,
+            image_center,
+            reading.mirrored,
+        );
+        Ok(Some(HpCodeMarker {
+            id: reading.id,
+            half_periods: grid.half_periods,
+            pose,
+            origin_px: grid.dots.center,
+            polarity: triple.polarity,
+            mirrored: reading.mirrored,
+            id_confidence: reading.confidence,
+            finders,
+            window: (center, size),
+            analysis,
+        }))
+    }
+
+    /// Pose of the marker from its grid (window and image centres in image pixels).
+    fn pose(
+        &self,
+        grid: &fine::MarkerGrid,
+        analysis: &PhaseAnalysis,
+        window_center: Vector2<f64>,
+        image_center: Vector2<f64>,
+        mirrored: bool,
+    ) -> Pose {
+        let period = self.params.period;
+        // ±1: pattern y is 90° clockwise on screen from pattern x (front) or anticlockwise.
+        let hand = if mirrored { -1.0 } else { 1.0 };
+        let (alpha, pixel_size, position) = match self.params.pose_formula {
+            PoseFormula::Symmetric => {
+                let ps =
+                    period * (grid.plane_x.frequency() + grid.plane_y.frequency()) / (2.0 * TAU);
+                let camera_px = grid.dots.center - image_center;
+                let alpha = grid.alpha(mirrored);
+                (alpha, ps, rotate2(camera_px * ps, -alpha))
+            }
+            PoseFormula::Original => {
+                let plane1 = analysis.planes[0];
+                let ps = period * plane1.frequency() / TAU;
+                let alpha = if grid.x_from_plane == 0 {
+                    grid.plane_x.angle()
+                } else {
+                    grid.plane_y.angle() - hand * FRAC_PI_2
+                };
+                // Marker centre from the window centre along the pattern axes, pattern units
+                // (the original's `−pos`, with the whole-period shift).
+                let (kx, ky) = grid.period_shift;
+                let dx = -period * (grid.plane_x.c - TAU * kx - grid.center_phase) / TAU;
+                let dy = -period * (grid.plane_y.c - TAU * ky - grid.center_phase) / TAU;
+                let w = rotate2((window_center - image_center) * ps, -alpha);
+                (alpha, ps, Vector2::new(w.x + dx, w.y + hand * dy))
+            }
+        };
+        if mirrored {
+            // cTp = Rz(α)·Rx(π)·Trans(x, y, 0): (x, −y) = Rz(−α)·t.
+            Pose {
+                x: position.x,
+                y: -position.y,
+                z: 0.0,
+                alpha: wrap_angle(alpha),
+                beta: 0.0,
+                gamma: wrap_angle(PI),
+                pixel_size,
+            }
+        } else {
+            Pose::planar(position.x, position.y, alpha, pixel_size)
+        }
+    }
+
+    /// The `size × size` window whose index `size/2` is the image pixel `center`, zero outside
+    /// the image, made bright-dot (inverted for dark dots) and, with `hann_center`, multiplied
+    /// by the radial Hann window centred at that index (both axes).
+    fn window_image(
+        &mut self,
+        image: &GreyImage,
+        center: (i64, i64),
+        size: usize,
+        polarity: Polarity,
+        hann_center: Option<f64>,
+    ) -> Result<GreyImage> {
+        let half = (size / 2) as i64;
+        let fill = match polarity {
+            Polarity::BrightDots => 0.0,
+            Polarity::DarkDots => 1.0,
+        };
+        let mut window = image.window(center.0 - half, center.1 - half, size, size, fill)?;
+        let pixels = window.pixels_mut();
+        if polarity == Polarity::DarkDots {
+            for v in pixels.iter_mut() {
+                *v = 1.0 - *v;
+            }
+        }
+        if let Some(hann_center) = hann_center {
+            if self.hann.0 != size || self.hann.1 != hann_center {
+                self.hann = (size, hann_center, hann_window(size, hann_center));
+            }
+            for (v, w) in pixels.iter_mut().zip(&self.hann.2) {
+                *v *= w;
+            }
+        }
+        Ok(window)
+    }
+}
+
+/// A window's centre pixel (index S/2), its phase analysis and the marker grid it gives.
+type WindowResult = ((i64, i64), PhaseAnalysis, fine::MarkerGrid);
+
+/// Pixel at index S/2 of the window that covers the pixels symmetric about
+/// `floor(center) + ½`, as the engine's separable window is: a rotated or flipped image then
+/// gets exactly the rotated or flipped window.
+fn window_center(center: Vector2<f64>) -> (i64, i64) {
+    (center.x.floor() as i64 + 1, center.y.floor() as i64 + 1)
+}
+
+/// Automatic window side for the marker of `triple`, from its finders.
+fn auto_window_for(triple: &FinderTriple) -> usize {
+    let (u, v) = (triple.right - triple.corner, triple.bottom - triple.corner);
+    // Marker width: the legs plus one finder (7 modules).
+    let width = 0.5 * (u.norm() + v.norm()) + 7.0 * triple.module_px;
+    auto_window_size(width, triple.module_px, u.y.atan2(u.x))
+}
+
+/// Automatic window side for a marker `width` pixels wide, `module` pixels per half period,
+/// turned by `angle` in the image: the largest FFT-friendly square (image axes) that stays
+/// inside the marker and clear of its finder squares, so the window holds the marker's dot
+/// grid and nothing else (0.55 to 0.7 marker widths depending on the angle). The finders
+/// are not periodic: letting them in costs ~1e-5 rad of orientation on noise-free renders.
+fn auto_window_size(width: f64, module: f64, angle: f64) -> usize {
+    // Half-side h of an axis-aligned square seen in the marker frame: its support along a
+    // marker axis is h·(|cos| + |sin|).
+    let spread = angle.cos().abs() + angle.sin().abs();
+    // Finder inner corners at (±, ±)(width/2 − 7 modules); marker edge at width/2.
+    let clear_of_finders = (width / 2.0 - (7.0 + WINDOW_CLEARANCE) * module) * spread;
+    let inside = (width / 2.0 - WINDOW_CLEARANCE * module) / spread;
+    let half = clear_of_finders.min(inside).floor().max(0.0) as usize;
+    (2 * fast_size_at_most(half)).max(MIN_WINDOW)
+}
+
+/// Largest `2^a·3^b·5^c` ≤ `n` (1 when `n` is 0): sizes the FFT handles fast.
+fn fast_size_at_most(n: usize) -> usize {
+    let smooth = |mut v: usize| {
+        for p in [2, 3, 5] {
+            while v % p == 0 {
+                v /= p;
+            }
+        }
+        v == 1
+    };
+    (1..=n).rev().find(|&v| smooth(v)).unwrap_or(1)
+}
+
+/// Radial Hann window of a `size × size` image: `(1 + cos(π·d/ρ))/2` for `d < ρ = size/2`,
+/// 0 beyond, `d` = distance to index `(c, c)` (with `c = size/2` the same as
+/// [`crate::snapshot::Snapshot::apodize`] with exponent 1; computed once per size).
+fn hann_window(size: usize, c: f64) -> Vec<f32> {
+    let rho = size as f64 / 2.0;
+    let mut w = vec![0.0f32; size * size];
+    for r in 0..size {
+        let dy = r as f64 - c;
+        for col in 0..size {
+            let d = (col as f64 - c).hypot(dy);
+            if d < rho {
+                w[r * size + col] = (0.5 * (1.0 + (PI * d / rho).cos())) as f32;
+            }
+        }
+    }
+    w
+}

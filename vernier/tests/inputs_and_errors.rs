@@ -6,7 +6,9 @@ mod common;
 use vernier::layout::PeriodicLayout;
 use vernier::pattern_file::Pattern;
 use vernier::render::{render, RenderOptions};
-use vernier::{Error, GreyImage, PeriodicDetector, PeriodicParams, PhaseEngine, PhaseParams, Polarity, Pose};
+use vernier::{
+    Error, GreyImage, PeriodicDetector, PeriodicParams, PhaseEngine, PhaseParams, Polarity, Pose,
+};
 
 fn test_image(width: usize, height: usize) -> (GreyImage, Pose) {
     let layout = PeriodicLayout::new(9.0, 101, 101).unwrap();
@@ -27,7 +29,10 @@ fn detect(image: &GreyImage, polarity: Polarity) -> vernier::Result<Pose> {
 fn assert_close(found: &Pose, truth: &Pose, size: (usize, usize), tolerance_px: f64) {
     let center = ((size.0 / 2) as f64, (size.1 / 2) as f64);
     let (err, _) = common::lattice_error(found, truth, 9.0, center);
-    assert!(err < tolerance_px, "error {err:.2e} px ({found:?} vs {truth:?})");
+    assert!(
+        err < tolerance_px,
+        "error {err:.2e} px ({found:?} vs {truth:?})"
+    );
 }
 
 #[test]
@@ -36,20 +41,71 @@ fn every_file_format_and_bit_depth_reads_the_same_pose() {
     let dir = std::env::temp_dir().join(format!("vernier-formats-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let (w, h) = (image.width() as u32, image.height() as u32);
-    let grey8: Vec<u8> = image.pixels().iter().map(|v| (v * 255.0).round() as u8).collect();
-    let grey16: Vec<u16> = image.pixels().iter().map(|v| (v * 65535.0).round() as u16).collect();
+    let grey8: Vec<u8> = image
+        .pixels()
+        .iter()
+        .map(|v| (v * 255.0).round() as u8)
+        .collect();
+    let grey16: Vec<u16> = image
+        .pixels()
+        .iter()
+        .map(|v| (v * 65535.0).round() as u16)
+        .collect();
     let rgb8: Vec<u8> = grey8.iter().flat_map(|&v| [v, v, v]).collect();
     let rgb16: Vec<u16> = grey16.iter().flat_map(|&v| [v, v, v]).collect();
     let files: Vec<(&str, image::DynamicImage)> = vec![
-        ("g8.png", image::GrayImage::from_raw(w, h, grey8.clone()).unwrap().into()),
-        ("g16.png", image::ImageBuffer::<image::Luma<u16>, _>::from_raw(w, h, grey16.clone()).unwrap().into()),
-        ("rgb8.png", image::RgbImage::from_raw(w, h, rgb8.clone()).unwrap().into()),
-        ("rgb16.png", image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(w, h, rgb16).unwrap().into()),
-        ("g8.tif", image::GrayImage::from_raw(w, h, grey8.clone()).unwrap().into()),
-        ("g16.tif", image::ImageBuffer::<image::Luma<u16>, _>::from_raw(w, h, grey16).unwrap().into()),
-        ("g8.pgm", image::GrayImage::from_raw(w, h, grey8.clone()).unwrap().into()),
-        ("rgb8.ppm", image::RgbImage::from_raw(w, h, rgb8.clone()).unwrap().into()),
-        ("rgb8.jpg", image::RgbImage::from_raw(w, h, rgb8).unwrap().into()),
+        (
+            "g8.png",
+            image::GrayImage::from_raw(w, h, grey8.clone())
+                .unwrap()
+                .into(),
+        ),
+        (
+            "g16.png",
+            image::ImageBuffer::<image::Luma<u16>, _>::from_raw(w, h, grey16.clone())
+                .unwrap()
+                .into(),
+        ),
+        (
+            "rgb8.png",
+            image::RgbImage::from_raw(w, h, rgb8.clone())
+                .unwrap()
+                .into(),
+        ),
+        (
+            "rgb16.png",
+            image::ImageBuffer::<image::Rgb<u16>, _>::from_raw(w, h, rgb16)
+                .unwrap()
+                .into(),
+        ),
+        (
+            "g8.tif",
+            image::GrayImage::from_raw(w, h, grey8.clone())
+                .unwrap()
+                .into(),
+        ),
+        (
+            "g16.tif",
+            image::ImageBuffer::<image::Luma<u16>, _>::from_raw(w, h, grey16)
+                .unwrap()
+                .into(),
+        ),
+        (
+            "g8.pgm",
+            image::GrayImage::from_raw(w, h, grey8.clone())
+                .unwrap()
+                .into(),
+        ),
+        (
+            "rgb8.ppm",
+            image::RgbImage::from_raw(w, h, rgb8.clone())
+                .unwrap()
+                .into(),
+        ),
+        (
+            "rgb8.jpg",
+            image::RgbImage::from_raw(w, h, rgb8).unwrap().into(),
+        ),
     ];
     for (name, picture) in files {
         let path = dir.join(name);
@@ -63,7 +119,12 @@ fn every_file_format_and_bit_depth_reads_the_same_pose() {
     }
     // Raw buffers (the ROS encodings).
     let raw = GreyImage::from_raw(181, 150, 181, vernier::PixelFormat::Mono8, &grey8).unwrap();
-    assert_close(&detect(&raw, Polarity::BrightDots).unwrap(), &truth, (181, 150), 5e-3);
+    assert_close(
+        &detect(&raw, Polarity::BrightDots).unwrap(),
+        &truth,
+        (181, 150),
+        5e-3,
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -76,14 +137,23 @@ fn dark_dots_are_measured_at_the_dot_centres() {
     // Without the polarity setting the grid is found half a period away (the original's defect).
     let wrong = detect(&dark, Polarity::BrightDots).unwrap();
     let (err, _) = common::lattice_error(&wrong, &truth, 9.0, (100.0, 80.0));
-    assert!((err - 9.0 / 2f64.sqrt()).abs() < 1e-3, "half-period diagonal shift expected, got {err}");
+    assert!(
+        (err - 9.0 / 2f64.sqrt()).abs() < 1e-3,
+        "half-period diagonal shift expected, got {err}"
+    );
 }
 
 #[test]
 fn bad_images_give_errors_not_panics() {
     // Empty and mismatched buffers.
-    assert!(matches!(GreyImage::new(0, 0, vec![]), Err(Error::InvalidImage(_))));
-    assert!(matches!(GreyImage::new(3, 3, vec![0.0; 8]), Err(Error::InvalidImage(_))));
+    assert!(matches!(
+        GreyImage::new(0, 0, vec![]),
+        Err(Error::InvalidImage(_))
+    ));
+    assert!(matches!(
+        GreyImage::new(3, 3, vec![0.0; 8]),
+        Err(Error::InvalidImage(_))
+    ));
     // 1×1 and other too-small images.
     let tiny = GreyImage::new(1, 1, vec![0.5]).unwrap();
     let e = detect(&tiny, Polarity::BrightDots).unwrap_err();
@@ -97,7 +167,12 @@ fn bad_images_give_errors_not_panics() {
             opts.noise_std = 0.1;
             opts.background = 0.5;
             opts.foreground = 0.5;
-            render(&PeriodicLayout::new(9.0, 3, 3).unwrap(), &Pose::planar(0.0, 0.0, 0.0, 1.0), &opts).unwrap()
+            render(
+                &PeriodicLayout::new(9.0, 3, 3).unwrap(),
+                &Pose::planar(0.0, 0.0, 0.0, 1.0),
+                &opts,
+            )
+            .unwrap()
         },
     ] {
         let e = detect(&image, Polarity::BrightDots).unwrap_err();
@@ -106,23 +181,33 @@ fn bad_images_give_errors_not_panics() {
     // NaN and infinity in float input.
     let mut values = vec![0.25f64; 64 * 64];
     values[100] = f64::NAN;
-    let e = GreyImage::from_f64(64, 64, &values).unwrap_err().to_string();
+    let e = GreyImage::from_f64(64, 64, &values)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("not a finite number"), "{e}");
     values[100] = f64::INFINITY;
     assert!(GreyImage::from_f64(64, 64, &values).is_err());
     // A missing or corrupt file.
-    let e = GreyImage::open("/nonexistent/image.png").unwrap_err().to_string();
+    let e = GreyImage::open("/nonexistent/image.png")
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("/nonexistent/image.png"), "{e}");
     let corrupt = std::env::temp_dir().join(format!("vernier-corrupt-{}.png", std::process::id()));
     std::fs::write(&corrupt, b"\x89PNG\r\n\x1a\nnot really").unwrap();
-    assert!(matches!(GreyImage::open(&corrupt), Err(Error::ImageRead { .. })));
+    assert!(matches!(
+        GreyImage::open(&corrupt),
+        Err(Error::ImageRead { .. })
+    ));
     std::fs::remove_file(&corrupt).ok();
 }
 
 #[test]
 fn bad_parameters_are_rejected_with_their_name() {
     let mut params = PeriodicParams::new(-1.0);
-    let e = PeriodicDetector::new(params.clone()).err().unwrap().to_string();
+    let e = PeriodicDetector::new(params.clone())
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("period"), "{e}");
     params.period = 9.0;
     params.phase.crop_factor = 1.5;
@@ -130,7 +215,13 @@ fn bad_parameters_are_rejected_with_their_name() {
     assert!(e.contains("crop_factor"), "{e}");
     let (image, _) = test_image(64, 64);
     let e = PhaseEngine::new()
-        .analyze(&image, &PhaseParams { sigma: f64::NAN, ..Default::default() })
+        .analyze(
+            &image,
+            &PhaseParams {
+                sigma: f64::NAN,
+                ..Default::default()
+            },
+        )
         .unwrap_err()
         .to_string();
     assert!(e.contains("sigma"), "{e}");
@@ -138,17 +229,28 @@ fn bad_parameters_are_rejected_with_their_name() {
 
 #[test]
 fn malformed_pattern_files_name_the_problem() {
-    let e = Pattern::from_json_str("{ \"PeriodicPattern\": { \"period\": 15.0, ").unwrap_err().to_string();
+    let e = Pattern::from_json_str("{ \"PeriodicPattern\": { \"period\": 15.0, ")
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("malformed JSON") && e.contains("line"), "{e}");
-    let e = Pattern::from_json_str(r#"{"PeriodicPattern": {"period": 15, "nRows": 4, "nCols": 3}}"#)
-        .unwrap_err()
-        .to_string();
+    let e =
+        Pattern::from_json_str(r#"{"PeriodicPattern": {"period": 15, "nRows": 4, "nCols": 3}}"#)
+            .unwrap_err()
+            .to_string();
     assert!(e.contains("nRows"), "{e}");
-    let e = Pattern::from_json_str(r#"{"PeriodicPattern": {"period": "fifteen", "nRows": 3, "nCols": 3}}"#)
-        .unwrap_err()
-        .to_string();
+    let e = Pattern::from_json_str(
+        r#"{"PeriodicPattern": {"period": "fifteen", "nRows": 3, "nCols": 3}}"#,
+    )
+    .unwrap_err()
+    .to_string();
     assert!(e.contains("period"), "{e}");
     // Numbers with or without a decimal point are both accepted.
-    assert!(Pattern::from_json_str(r#"{"PeriodicPattern": {"period": 15, "nRows": 3, "nCols": 3}}"#).is_ok());
-    assert!(Pattern::from_json_str(r#"{"PeriodicPattern": {"period": 15.0, "nRows": 3, "nCols": 3}}"#).is_ok());
+    assert!(Pattern::from_json_str(
+        r#"{"PeriodicPattern": {"period": 15, "nRows": 3, "nCols": 3}}"#
+    )
+    .is_ok());
+    assert!(Pattern::from_json_str(
+        r#"{"PeriodicPattern": {"period": 15.0, "nRows": 3, "nCols": 3}}"#
+    )
+    .is_ok());
 }

@@ -191,7 +191,11 @@ impl From<&refine::Refined> for Refinement {
             planes: r.planes,
             amplitudes: r.amplitudes,
             phase_std: [std(r.amplitudes[0]), std(r.amplitudes[1])],
-            quality: if r.variance > 0.0 { (explained / r.variance).min(1.0) } else { 0.0 },
+            quality: if r.variance > 0.0 {
+                (explained / r.variance).min(1.0)
+            } else {
+                0.0
+            },
             iterations: r.iterations,
         }
     }
@@ -340,7 +344,12 @@ impl PhaseEngine {
         };
         let refined = if refining {
             let cache = self.cache_for(rows, cols, params.sigma, full_resolution);
-            let r = refine::refine(image.pixels(), coarse.planes, cache.refine(), params.refine_iterations);
+            let r = refine::refine(
+                image.pixels(),
+                coarse.planes,
+                cache.refine(),
+                params.refine_iterations,
+            );
             Refinement::from(&r)
         } else {
             Refinement {
@@ -351,7 +360,13 @@ impl PhaseEngine {
                 iterations: 0,
             }
         };
-        let Refinement { planes, amplitudes, phase_std, quality, iterations } = refined;
+        let Refinement {
+            planes,
+            amplitudes,
+            phase_std,
+            quality,
+            iterations,
+        } = refined;
         Ok(PhaseAnalysis {
             size: (rows, cols),
             planes,
@@ -387,12 +402,22 @@ impl PhaseEngine {
             ));
         }
         if rows < MIN_IMAGE_SIDE || cols < MIN_IMAGE_SIDE {
-            return Err(Error::InvalidImage(format!("{cols}x{rows} pixels is too small for the phase engine")));
+            return Err(Error::InvalidImage(format!(
+                "{cols}x{rows} pixels is too small for the phase engine"
+            )));
         }
         let cache = self.cache_for(rows, cols, PhaseParams::default().sigma, false);
-        let r = refine::refine_weighted(image.pixels(), weights, start, cache.refine(), iterations.max(1));
+        let r = refine::refine_weighted(
+            image.pixels(),
+            weights,
+            start,
+            cache.refine(),
+            iterations.max(1),
+        );
         if r.effective_pixels <= 0.0 {
-            return Err(Error::PatternNotFound("all refinement weights are zero".into()));
+            return Err(Error::PatternNotFound(
+                "all refinement weights are zero".into(),
+            ));
         }
         Ok(Refinement::from(&r))
     }

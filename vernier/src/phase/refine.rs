@@ -325,9 +325,18 @@ pub(crate) fn refine(
             }
         }
         let sums = CombinationSums::new(&planes, &plan.wx, &xs, &plan.wy, &ys);
-        let moments = Moments { sum_w, sum_g, sum_g2, data: m };
-        let Some(step) = gauss_newton_step(&mut planes, &|c, px, py| sums.get(c, px, py), &moments, cols.max(rows) as f64)
-        else {
+        let moments = Moments {
+            sum_w,
+            sum_g,
+            sum_g2,
+            data: m,
+        };
+        let Some(step) = gauss_newton_step(
+            &mut planes,
+            &|c, px, py| sums.get(c, px, py),
+            &moments,
+            cols.max(rows) as f64,
+        ) else {
             break;
         };
         amplitudes = step.amplitudes;
@@ -417,7 +426,11 @@ fn gauss_newton_step(
         plane.b += db;
         plane.c += dc;
         step.amplitudes[l] = amp.norm();
-        step.largest = step.largest.max(dc.abs()).max(da.abs() * extent).max(db.abs() * extent);
+        step.largest = step
+            .largest
+            .max(dc.abs())
+            .max(da.abs() * extent)
+            .max(db.abs() * extent);
     }
     Some(step)
 }
@@ -454,7 +467,8 @@ unsafe fn dots_avx2(row: &[f32], kernels: &[f32], out: &mut [f64]) {
 fn dots(row: &[f32], kernels: &[f32], out: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
     {
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
             // SAFETY: the required CPU features were just detected.
             return unsafe { dots_avx2(row, kernels, out) };
         }
@@ -504,7 +518,11 @@ pub(crate) fn refine_weighted(
         }
     }
     let mean = if sum_w > 0.0 { sum_g / sum_w } else { 0.0 };
-    let variance = if sum_w > 0.0 { (sum_g2 / sum_w - mean * mean).max(0.0) } else { 0.0 };
+    let variance = if sum_w > 0.0 {
+        (sum_g2 / sum_w - mean * mean).max(0.0)
+    } else {
+        0.0
+    };
     let mut planes = planes;
     let mut amplitudes = [0.0; 2];
     let mut residual = variance;
@@ -560,7 +578,8 @@ pub(crate) fn refine_weighted(
                 let beta = n0 as f64 * planes[0].b + n1 as f64 * planes[1].b;
                 let f = Cplx::from_polar(wy, beta * y);
                 for i in 0..3 {
-                    let s = Cplx::new(gram_dots[(k * 3 + i) * 2], gram_dots[(k * 3 + i) * 2 + 1]) * f;
+                    let s =
+                        Cplx::new(gram_dots[(k * 3 + i) * 2], gram_dots[(k * 3 + i) * 2 + 1]) * f;
                     for (jy, entry) in table[k][i].iter_mut().enumerate().take(3 - i) {
                         *entry += s * y.powi(jy as i32);
                     }
@@ -573,8 +592,10 @@ pub(crate) fn refine_weighted(
                 *v *= phase_c;
             }
         }
-        let offsets: Vec<f64> =
-            COMBOS.iter().map(|&(n0, n1)| n0 as f64 * planes[0].c + n1 as f64 * planes[1].c).collect();
+        let offsets: Vec<f64> = COMBOS
+            .iter()
+            .map(|&(n0, n1)| n0 as f64 * planes[0].c + n1 as f64 * planes[1].c)
+            .collect();
         let weighted_exp = |(n0, n1): (i32, i32), px: usize, py: usize| -> Cplx {
             for (k, &c) in COMBOS.iter().enumerate() {
                 if c == (n0, n1) || c == (-n0, -n1) {
@@ -584,8 +605,15 @@ pub(crate) fn refine_weighted(
             }
             Cplx::default()
         };
-        let moments = Moments { sum_w, sum_g, sum_g2, data: m };
-        let Some(step) = gauss_newton_step(&mut planes, &weighted_exp, &moments, cols.max(rows) as f64) else {
+        let moments = Moments {
+            sum_w,
+            sum_g,
+            sum_g2,
+            data: m,
+        };
+        let Some(step) =
+            gauss_newton_step(&mut planes, &weighted_exp, &moments, cols.max(rows) as f64)
+        else {
             break;
         };
         amplitudes = step.amplitudes;
@@ -599,7 +627,11 @@ pub(crate) fn refine_weighted(
         amplitudes,
         variance,
         residual,
-        effective_pixels: if sum_w2 > 0.0 { sum_w * sum_w / sum_w2 } else { 0.0 },
+        effective_pixels: if sum_w2 > 0.0 {
+            sum_w * sum_w / sum_w2
+        } else {
+            0.0
+        },
         iterations,
     }
 }

@@ -1,0 +1,13 @@
+//! `ros2 run vernier_ros detector --ros-args ...`: the marker-pose node (see `vernier_ros::node`).
+
+use std::process::ExitCode;
+
+fn main() -> ExitCode {
+    match vernier_ros::node::run(std::env::args().skip(1).collect()) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(message) => {
+            eprintln!("detector: {message}");
+            ExitCode::FAILURE
+        }
+    }
+}

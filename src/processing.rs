@@ -1,0 +1,563 @@
+//! One frame, DDS-free: check the `sensor_msgs/Image`, convert it, detect the markers and
+//! build every output message (SI units). The node's worker thread calls
+//! [`Processor::process`]; tests call it directly.
+//!
+//! Numerics stay in the core: SI scaling is [`vernier::Pose::scaled`], relative poses
+//! [`vernier::Pose::relative`], covariances [`vernier::MarkerPose::covariance`].
+
+use crate::messages::{
+    Header, Image, MarkerPose as MarkerMsg, MarkerPoseArray, Pose, PoseStamped, TfMessage,
+    Transform, TransformStamped, Vector3,
+};
+use crate::params::NodeParams;
+use vernier::detector::DetectorConfig;
+use vernier::{Detector, GreyImage, MarkerPose, PixelFormat};
+
+/// Why an image message is unusable (counted as a bad message in diagnostics).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct BadImage(pub String);
+
+impl std::fmt::Display for BadImage {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+/// Checks an image message without converting it: known encoding, non-zero size,
+/// `step ≥ width × bytes per pixel` and `data.len() == step × height`.
+pub fn check_image(msg: &Image) -> Result<PixelFormat, BadImage> {
+    let format = PixelFormat::from_ros_encoding(&msg.encoding, msg.is_bigendian != 0)
+        .ok_or_else(|| BadImage(format!("unknown encoding `{}`", msg.encoding)))?;
+    if msg.width == 0 || msg.height == 0 {
+        return Err(BadImage(format!(
+            "zero-size image {}x{}",
+            msg.width, msg.height
+        )));
+    }
+    let row = (msg.width as u64) * format.bytes_per_pixel() as u64;
+    if (msg.step as u64) < row {
+        return Err(BadImage(format!(
+            "step {} is shorter than a row of {} {} pixels ({row} bytes)",
+            msg.step, msg.width, msg.encoding
+        )));
+    }
+    let expected = msg.step as u64 * msg.height as u64;
+    if msg.data.len() as u64 != expected {
+        return Err(BadImage(format!(
+            "{} data bytes, expected step × height = {} × {} = {expected}",
+            msg.data.len(),
+            msg.step,
+            msg.height
+        )));
+    }
+    Ok(format)
+}
+
+/// Converts a checked image message to grey levels in `[0, 1]`.
+pub fn to_grey(msg: &Image) -> Result<GreyImage, BadImage> {
+    let format = check_image(msg)?;
+    GreyImage::from_raw(
+        msg.width as usize,
+        msg.height as usize,
+        msg.step as usize,
+        format,
+        &msg.data,
+    )
+    .map_err(|e| BadImage(e.to_string()))
+}
+
+/// Everything published for one frame. All poses in metres and radians, stamped with the
+/// image stamp, expressed in the camera frame (x right, y down, z into the scene).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FrameOutput {
+    /// `~/markers`: every tracked marker (empty when none was found).
+    pub markers: MarkerPoseArray,
+    /// `~/marker_<id>/pose`, one per tracked ID (the first marker when an ID repeats).
+    pub poses: Vec<(u64, PoseStamped)>,
+    /// `~/relative/marker_<a>_<b>/pose`: pose of `b` in `a`'s frame, for configured pairs
+    /// whose both markers were found.
+    pub relative: Vec<((u64, u64), PoseStamped)>,
+    /// `/tf` transforms camera → marker (empty when `publish_tf` is off).
+    pub tf: TfMessage,
+    /// Why detection found nothing, when it failed (the frame itself was valid).
+    pub detect_error: Option<String>,
+    /// The markers as measured (pattern units), for the debug image.
+    pub raw: Vec<MarkerPose>,
+}
+
+/// Keeps one detector (FFT plans, buffers) and rebuilds it when the parameters change.
+pub struct Processor {
+    detector: Detector,
+    config: DetectorConfig,
+    params: NodeParams,
+    generation: u64,
+}
+
+impl Processor {
+    /// A processor for `params` (generation `generation`).
+    pub fn new(params: NodeParams, generation: u64) -> Result<Processor, String> {
+        let (detector, config) = params.build_detector()?;
+        Ok(Processor {
+            detector,
+            config,
+            params,
+            generation,
+        })
+    }
+
+    /// The parameters in use.
+    pub fn params(&self) -> &NodeParams {
+        &self.params
+    }
+
+    /// Generation of the parameters in use.
+    pub fn generation(&self) -> u64 {
+        self.generation
+    }
+
+    /// Switches to new parameters (the next frame uses them). On error the old ones stay, and
+    /// generation `generation` counts as handled (it is not retried on every frame).
+    pub fn update(&mut self, params: NodeParams, generation: u64) -> Result<(), String> {
+        self.generation = generation;
+        if params.settings != self.params.settings {
+            let (detector, config) = params.build_detector()?;
+            self.detector = detector;
+            self.config = config;
+        }
+        self.params = params;
+        Ok(())
+    }
+
+    /// Processes one image message. `Err` means the message itself is bad; a valid image
+    /// without markers gives an empty marker array and `detect_error`.
+    pub fn process(&mut self, msg: &Image) -> Result<(FrameOutput, GreyImage), BadImage> {
+        let grey = to_grey(msg)?;
+        let found = self.detector.detect(&grey);
+        let (mut markers, detect_error) = match found {
+            Ok(markers) => (markers, None),
+            Err(e) => (Vec::new(), Some(e.to_string())),
+        };
+        let params = &self.params;
+        markers.retain(|m| params.tracks(m.id) && m.quality >= params.min_quality);
+        vernier::detector::flag_duplicate_ids(&mut markers);
+        let window_px = params
+            .settings
+            .window_size
+            .unwrap_or(grey.width().min(grey.height())) as f64;
+        let output = build_output(
+            msg,
+            markers,
+            detect_error,
+            params,
+            self.config.period(),
+            window_px,
+        );
+        Ok((output, grey))
+    }
+}
+
+/// Builds the output messages of one frame from the detected markers (pattern units).
+pub fn build_output(
+    msg: &Image,
+    markers: Vec<MarkerPose>,
+    detect_error: Option<String>,
+    params: &NodeParams,
+    period: f64,
+    window_px: f64,
+) -> FrameOutput {
+    let scale = params.metres_per_unit;
+    let frame_id = if params.camera_frame.is_empty() {
+        msg.header.frame_id.clone()
+    } else {
+        params.camera_frame.clone()
+    };
+    let header = Header {
+        stamp: msg.header.stamp,
+        frame_id,
+    };
+    let mut out = FrameOutput {
+        markers: MarkerPoseArray {
+            header: header.clone(),
+            markers: Vec::with_capacity(markers.len()),
+        },
+        detect_error,
+        ..FrameOutput::default()
+    };
+    for m in &markers {
+        // The same marker in SI units: its covariance then comes out in m² directly.
+        let si = MarkerPose {
+            pose: m.pose.scaled(scale),
+            ..m.clone()
+        };
+        let camera_from_marker = si.pose.camera_from_pattern();
+        let pose = Pose::from_isometry(&camera_from_marker);
+        out.markers.markers.push(MarkerMsg {
+            id: m.id,
+            pose,
+            pixel_size: si.pose.pixel_size,
+            quality: m.quality,
+            covariance: si.covariance(period * scale, window_px).into(),
+            duplicate_id: m.duplicate_id,
+        });
+        if out.poses.iter().any(|(id, _)| *id == m.id) {
+            continue;
+        }
+        out.poses.push((
+            m.id,
+            PoseStamped {
+                header: header.clone(),
+                pose,
+            },
+        ));
+        if params.publish_tf {
+            out.tf.transforms.push(TransformStamped {
+                header: header.clone(),
+                child_frame_id: format!("{}{}", params.marker_frame_prefix, m.id),
+                transform: Transform {
+                    translation: Vector3 {
+                        x: pose.position.x,
+                        y: pose.position.y,
+                        z: pose.position.z,
+                    },
+                    rotation: pose.orientation,
+                },
+            });
+        }
+    }
+    for &(a, b) in &params.relative_pairs {
+        let find = |id: u64| markers.iter().find(|m| m.id == id);
+        if let (Some(ma), Some(mb)) = (find(a), find(b)) {
+            let a_from_b = ma.pose.scaled(scale).relative(&mb.pose.scaled(scale));
+            out.relative.push((
+                (a, b),
+                PoseStamped {
+                    header: Header {
+                        stamp: header.stamp,
+                        frame_id: format!("{}{}", params.marker_frame_prefix, a),
+                    },
+                    pose: Pose::from_isometry(&a_from_b),
+                },
+            ));
+        }
+    }
+    out.raw = markers;
+    out
+}
+
+/// An `rgb8` copy of `grey` with each marker's origin marked by a red cross and its x axis
+/// by a green segment (the optional `~/debug_image`).
+pub fn annotate(grey: &GreyImage, markers: &[MarkerPose], header: &Header) -> Image {
+    let (w, h) = (grey.width(), grey.height());
+    let mut data = Vec::with_capacity(w * h * 3);
+    for &v in grey.pixels() {
+        let g = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+        data.extend([g, g, g]);
+    }
+    let mut put = |x: f64, y: f64, rgb: [u8; 3]| {
+        if x >= 0.0 && y >= 0.0 && (x as usize) < w && (y as usize) < h {
+            let i = ((y as usize) * w + x as usize) * 3;
+            if let Some(px) = data.get_mut(i..i + 3) {
+                px.copy_from_slice(&rgb);
+            }
+        }
+    };
+    let arm = (w.min(h) as f64 / 40.0).max(5.0);
+    for m in markers {
+        let (cx, cy) = (m.origin_px.x.round(), m.origin_px.y.round());
+        for d in -(arm as i64)..=(arm as i64) {
+            put(cx + d as f64, cy, [255, 0, 0]);
+            put(cx, cy + d as f64, [255, 0, 0]);
+        }
+        let (s, c) = m.pose.alpha.sin_cos();
+        for t in 0..(3 * arm as i64) {
+            put(
+                (cx + c * t as f64).round(),
+                (cy + s * t as f64).round(),
+                [0, 255, 0],
+            );
+        }
+    }
+    Image {
+        header: header.clone(),
+        height: h as u32,
+        width: w as u32,
+        encoding: "rgb8".into(),
+        is_bigendian: 0,
+        step: (w * 3) as u32,
+        data,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::messages::Time;
+    use ros2_client::ParameterValue;
+    use vernier::layout::PeriodicLayout;
+    use vernier::render::{render, RenderOptions};
+
+    fn params(overrides: &[(&str, ParameterValue)]) -> NodeParams {
+        let owned: Vec<(String, ParameterValue)> = overrides
+            .iter()
+            .map(|(n, v)| (n.to_string(), v.clone()))
+            .collect();
+        NodeParams::from_overrides(&owned).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    fn mono8(width: u32, height: u32, data: Vec<u8>) -> Image {
+        Image {
+            header: Header {
+                stamp: Time { sec: 5, nanosec: 6 },
+                frame_id: "camera".into(),
+            },
+            height,
+            width,
+            encoding: "mono8".into(),
+            is_bigendian: 0,
+            step: width,
+            data,
+        }
+    }
+
+    /// A 256×256 periodic grid (period 8 µm at 1 µm/px) at a known pose, 8-bit.
+    fn grid_frame(pose: &vernier::Pose) -> Image {
+        let layout = PeriodicLayout::new(8.0, 81, 81).unwrap_or_else(|e| panic!("{e}"));
+        let mut opts = RenderOptions::new(256, 256);
+        opts.blur_sigma = 0.5;
+        opts.bit_depth = Some(8);
+        let img = render(&layout, pose, &opts).unwrap_or_else(|e| panic!("{e}"));
+        let bytes = img
+            .pixels()
+            .iter()
+            .map(|v| (v * 255.0).round() as u8)
+            .collect();
+        mono8(256, 256, bytes)
+    }
+
+    #[test]
+    fn bad_messages_are_rejected_with_reasons() {
+        let good = mono8(4, 2, vec![0; 8]);
+        assert_eq!(check_image(&good), Ok(PixelFormat::Mono8));
+        let cases = [
+            (
+                Image {
+                    encoding: "yuv422".into(),
+                    ..good.clone()
+                },
+                "encoding",
+            ),
+            (
+                Image {
+                    data: vec![0; 7],
+                    ..good.clone()
+                },
+                "data bytes",
+            ),
+            (
+                Image {
+                    width: 0,
+                    step: 0,
+                    data: vec![],
+                    ..good.clone()
+                },
+                "zero-size",
+            ),
+            (
+                Image {
+                    height: 0,
+                    data: vec![],
+                    ..good.clone()
+                },
+                "zero-size",
+            ),
+            (
+                Image {
+                    step: 3,
+                    data: vec![0; 6],
+                    ..good.clone()
+                },
+                "step",
+            ),
+            (
+                Image {
+                    encoding: "rgb8".into(),
+                    ..good.clone()
+                },
+                "step",
+            ),
+            (
+                Image {
+                    width: u32::MAX,
+                    height: u32::MAX,
+                    step: u32::MAX,
+                    ..good.clone()
+                },
+                "data bytes",
+            ),
+        ];
+        for (msg, reason) in cases {
+            let err = check_image(&msg).err().map(|e| e.0).unwrap_or_default();
+            assert!(err.contains(reason), "`{err}` lacks `{reason}`");
+        }
+        for encoding in ["mono16", "rgb8", "bgr8", "rgba8", "bgra8"] {
+            let bpp = PixelFormat::from_ros_encoding(encoding, false)
+                .map(|f| f.bytes_per_pixel())
+                .unwrap_or(0) as u32;
+            let msg = Image {
+                encoding: encoding.into(),
+                step: 4 * bpp,
+                data: vec![0; (8 * bpp) as usize],
+                ..good.clone()
+            };
+            assert!(to_grey(&msg).is_ok(), "{encoding}");
+        }
+    }
+
+    #[test]
+    fn outputs_are_si_stamped_and_empty_on_loss() {
+        let p = params(&[
+            ("period", ParameterValue::Double(8.0)),
+            ("camera_frame", ParameterValue::String("cam_optical".into())),
+        ]);
+        let mut processor = Processor::new(p, 0).unwrap_or_else(|e| panic!("{e}"));
+        let truth = vernier::Pose::planar(1.25, -2.5, 0.3, 1.0);
+        let (out, _) = processor
+            .process(&grid_frame(&truth))
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(out.markers.header.stamp, Time { sec: 5, nanosec: 6 });
+        assert_eq!(out.markers.header.frame_id, "cam_optical");
+        assert_eq!(out.markers.markers.len(), 1);
+        let m = &out.markers.markers[0];
+        let expected = truth.scaled(1e-6).camera_from_pattern().translation.vector;
+        let err_m = ((m.pose.position.x - expected.x).powi(2)
+            + (m.pose.position.y - expected.y).powi(2))
+        .sqrt();
+        // 1e-3 px at 1 µm/px = 1e-9 m.
+        assert!(err_m < 1e-9, "position error {err_m} m");
+        assert!((m.pixel_size - 1e-6).abs() < 1e-9);
+        assert!(
+            m.covariance.0[0] > 0.0 && m.covariance.0[0] < 1e-15,
+            "{}",
+            m.covariance.0[0]
+        );
+        assert_eq!(out.poses.len(), 1);
+        assert_eq!(out.tf.transforms.len(), 1);
+        assert_eq!(out.tf.transforms[0].child_frame_id, "vernier_marker_0");
+        // A blank frame: valid message, nothing found, empty array with the stamp.
+        let (empty, _) = processor
+            .process(&mono8(256, 256, vec![0; 256 * 256]))
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert!(empty.markers.markers.is_empty());
+        assert!(empty.poses.is_empty() && empty.tf.transforms.is_empty());
+        assert!(empty.detect_error.is_some());
+        assert_eq!(empty.markers.header.stamp, Time { sec: 5, nanosec: 6 });
+    }
+
+    #[test]
+    fn parameter_updates_apply_to_the_next_frame() {
+        let p = params(&[("period", ParameterValue::Double(8.0))]);
+        let mut processor = Processor::new(p.clone(), 0).unwrap_or_else(|e| panic!("{e}"));
+        let frame = grid_frame(&vernier::Pose::planar(0.5, 0.25, 0.1, 1.0));
+        let (before, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        // Doubling the physical period doubles the measured pixel size (the image is the same).
+        let q = p
+            .with("period", &ParameterValue::Double(16.0))
+            .and_then(|q| q.with("publish_tf", &ParameterValue::Boolean(false)))
+            .and_then(|q| q.with("period_unit", &ParameterValue::String("nm".into())))
+            .unwrap_or_else(|e| panic!("{e}"));
+        processor.update(q, 1).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(processor.generation(), 1);
+        let (after, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        let ratio = after.markers.markers[0].pixel_size / before.markers.markers[0].pixel_size;
+        // 2× the period in nm instead of µm: 2e-3 × the metres per pixel.
+        assert!((ratio - 2e-3).abs() < 1e-9, "ratio {ratio}");
+        assert!(after.tf.transforms.is_empty());
+        // Tracking only another id publishes an empty array.
+        let r = processor
+            .params()
+            .with("marker_ids", &ParameterValue::IntegerArray(vec![4]))
+            .unwrap_or_else(|e| panic!("{e}"));
+        processor.update(r, 2).unwrap_or_else(|e| panic!("{e}"));
+        let (none, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        assert!(none.markers.markers.is_empty());
+        // A quality threshold above 1 is rejected before it reaches the processor.
+        assert!(processor
+            .params()
+            .with("min_quality", &ParameterValue::Double(2.0))
+            .is_err());
+    }
+
+    #[test]
+    fn a_failed_rebuild_keeps_the_previous_detector() {
+        let dir = std::env::temp_dir().join(format!("vernier_ros_proc_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap_or(());
+        let file = dir.join("grid.json");
+        std::fs::write(
+            &file,
+            r#"{"PeriodicPattern": {"period": 8.0, "nRows": 81, "nCols": 81}}"#,
+        )
+        .unwrap_or(());
+        let file_text = file.display().to_string();
+        let p = params(&[("pattern_file", ParameterValue::String(file_text))]);
+        let q = p
+            .with("period", &ParameterValue::Double(16.0))
+            .unwrap_or_else(|e| panic!("{e}"));
+        let mut processor = Processor::new(p, 0).unwrap_or_else(|e| panic!("{e}"));
+        // The pattern file vanishes between validation and the next frame.
+        std::fs::remove_dir_all(&dir).unwrap_or(());
+        assert!(processor.update(q, 1).is_err());
+        assert_eq!(processor.generation(), 1, "not retried on every frame");
+        assert_eq!(processor.params().settings.period, None);
+        let frame = grid_frame(&vernier::Pose::planar(0.5, 0.25, 0.1, 1.0));
+        let (out, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        assert!((out.markers.markers[0].pixel_size - 1e-6).abs() < 1e-9);
+    }
+
+    #[test]
+    fn relative_pairs_give_b_in_a_frame() {
+        // Two synthetic markers (as a multi-marker detector would report them), µm.
+        let p = params(&[
+            ("period", ParameterValue::Double(8.0)),
+            (
+                "relative_pairs",
+                ParameterValue::StringArray(vec!["3:9".into(), "3:4".into()]),
+            ),
+        ]);
+        let marker = |id: u64, pose: vernier::Pose| MarkerPose {
+            id,
+            pose,
+            origin_px: nalgebra::Vector2::new(0.0, 0.0),
+            quality: 0.9,
+            phase_std: [1e-4, 1e-4],
+            duplicate_id: false,
+            decode_confidence: None,
+        };
+        let a = vernier::Pose::planar(10.0, 20.0, 0.5, 1.0);
+        let b = vernier::Pose::from_origin_in_image(
+            a.origin_in_image() + vernier::pose::rotate2(nalgebra::Vector2::new(30.0, 4.0), 0.5),
+            0.7,
+            1.0,
+        );
+        let out = build_output(
+            &mono8(1, 1, vec![0]),
+            vec![marker(3, a), marker(9, b)],
+            None,
+            &p,
+            8.0,
+            256.0,
+        );
+        assert_eq!(out.relative.len(), 1, "pair 3:4 has no marker 4");
+        let ((ia, ib), rel) = &out.relative[0];
+        assert_eq!((*ia, *ib), (3, 9));
+        assert_eq!(rel.header.frame_id, "vernier_marker_3");
+        // b's origin is 30 µm along a's x axis and 4 µm along its y axis, turned by 0.2 rad.
+        assert!(
+            (rel.pose.position.x - 30e-6).abs() < 1e-12,
+            "{:?}",
+            rel.pose
+        );
+        assert!((rel.pose.position.y - 4e-6).abs() < 1e-12, "{:?}", rel.pose);
+        let q = rel.pose.orientation;
+        assert!((2.0 * q.z.atan2(q.w) - 0.2).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,163 @@
+#!/usr/bin/env python3
+"""Benchmark of the detector node through DDS (not run in CI): a Cyclone DDS publisher sends
+1024×1024 mono8 frames (rendered by the project, periodic grid) at 30 Hz and 60 Hz for 30 s
+each; a Cyclone reader on `~/markers` timestamps every result. Reports:
+  * end-to-end latency = receipt time − image stamp (stamp = send time), p50 / p99;
+  * frames sent, processed (results received), dropped by the node while busy (its
+    /diagnostics `frames_dropped`), lost otherwise (sent − processed − dropped);
+  * node CPU time per processed frame (user + system, /proc/<pid>/stat).
+
+    test/run_bench.sh [--duration 30] [--rates 30,60]
+
+Frames are serialised once and only their stamp is patched before each write, so the Python
+publisher keeps up at 60 Hz (Cyclone's own C writer sends them)."""
+
+import argparse
+import os
+import random
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from cyclonedds._clayer import ddspy_write  # noqa: E402
+from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet  # noqa: E402
+from cyclonedds.util import duration  # noqa: E402
+
+import harness  # noqa: E402
+
+SIZE = 1024
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_seconds(pid):
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    # Fields 14 and 15 of stat (utime, stime); index from after the command name.
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def percentile(values, q):
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    rank = max(1, min(len(ordered), int(-(-q * len(ordered) // 1))))
+    return ordered[rank - 1]
+
+
+class Receiver(threading.Thread):
+    """Collects (stamp_ns, receipt_ns, marker count) for every MarkerPoseArray."""
+
+    def __init__(self, peer):
+        super().__init__(daemon=True)
+        self.peer = peer
+        self.results = []
+        self.diagnostics = {}
+        self.running = True
+        self.waitset = WaitSet(peer.dp)
+        any_state = SampleState.Any | ViewState.Any | InstanceState.Any
+        self.waitset.attach(ReadCondition(peer.markers, any_state))
+        self.waitset.attach(ReadCondition(peer.diagnostics, any_state))
+
+    def run(self):
+        while self.running:
+            self.waitset.wait(duration(milliseconds=50))
+            now = time.time_ns()
+            for s in self.peer.take_all(self.peer.markers):
+                stamp = s.header.stamp.sec * 1_000_000_000 + s.header.stamp.nanosec
+                self.results.append((stamp, now, len(s.markers)))
+            for d in self.peer.take_all(self.peer.diagnostics):
+                self.diagnostics = {kv.key: kv.value for kv in d.status[0].values}
+
+
+def run_rate(peer, receiver, node, frames, rate, seconds):
+    payloads = []
+    for data in frames:
+        msg = harness.mono8(SIZE, SIZE, data, 0)
+        ser = msg.serialize(use_version_2=False)
+        payloads.append(bytearray(ser.ljust((len(ser) + 3) & ~3, b"\0")))
+    receiver.results.clear()
+    cpu0 = cpu_seconds(node.pid)
+    dropped0 = int(receiver.diagnostics.get("frames_dropped", 0))
+    sent = set()
+    period_ns = int(1e9 / rate)
+    start = time.time_ns() + 200_000_000
+    k = 0
+    while True:
+        due = start + k * period_ns
+        if due > start + int(seconds * 1e9):
+            break
+        pause = (due - time.time_ns()) / 1e9
+        if pause > 0:
+            time.sleep(pause)
+        now = time.time_ns()
+        buf = payloads[k % len(payloads)]
+        # Stamp = send time; bytes 4..12 after the 4-byte encapsulation header.
+        buf[4:8] = (now // 1_000_000_000).to_bytes(4, "little", signed=True)
+        buf[8:12] = (now % 1_000_000_000).to_bytes(4, "little")
+        ddspy_write(peer.image_writer._ref, bytes(buf))
+        sent.add(now)
+        k += 1
+    time.sleep(2.5)  # let the last frames and a diagnostics report arrive
+    cpu = cpu_seconds(node.pid) - cpu0
+    results = [r for r in receiver.results if r[0] in sent]
+    latencies = [(recv - stamp) / 1e6 for stamp, recv, _ in results]
+    found = sum(1 for r in results if r[2] > 0)
+    dropped = int(receiver.diagnostics.get("frames_dropped", 0)) - dropped0
+    processed = len(results)
+    return {
+        "rate": rate,
+        "sent": len(sent),
+        "processed": processed,
+        "with_marker": found,
+        "dropped_busy": dropped,
+        "lost_other": len(sent) - processed - dropped,
+        "p50": percentile(latencies, 0.5),
+        "p99": percentile(latencies, 0.99),
+        "mean": statistics.fmean(latencies) if latencies else float("nan"),
+        "cpu_ms_per_frame": 1e3 * cpu / processed if processed else float("nan"),
+    }
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration", type=float, default=30.0, help="seconds per rate")
+    parser.add_argument("--rates", default="30,60", help="comma-separated Hz")
+    parser.add_argument("--frames", type=int, default=8, help="distinct frames cycled")
+    args = parser.parse_args()
+    domain = int(os.environ.get("ROS_DOMAIN_ID", random.randint(1, 200)))
+    work = Path(tempfile.mkdtemp(prefix="vernier_bench_"))
+    _, frames = harness.render_frames(work, args.frames, SIZE, 10.0, 0.8, seed=3)
+    node = harness.start_node(
+        domain, ["-p", "period:=10.0", "-p", "marker_ids:=[0]", "--log-level", "error"],
+        work / "node.log",
+    )
+    peer = harness.RosPeer(domain)
+    try:
+        if not peer.wait_for_node():
+            raise SystemExit(f"node not discovered:\n{(work / 'node.log').read_text()}")
+        receiver = Receiver(peer)
+        receiver.start()
+        # Warm-up: FFT plans, discovery of the per-marker topics.
+        run_rate(peer, receiver, node, frames, 10, 2.0)
+        rows = [run_rate(peer, receiver, node, frames, float(r), args.duration)
+                for r in args.rates.split(",")]
+        receiver.running = False
+    finally:
+        harness.stop_node(node)
+    print(f"detector node, {SIZE}x{SIZE} mono8 periodic grid, {args.duration:.0f} s per rate, "
+          f"{os.cpu_count()} CPUs")
+    print(f"{'rate Hz':>8} {'sent':>6} {'processed':>9} {'dropped':>8} {'lost':>5} "
+          f"{'p50 ms':>8} {'p99 ms':>8} {'mean ms':>8} {'CPU ms/frame':>13}")
+    for r in rows:
+        print(f"{r['rate']:8.0f} {r['sent']:6d} {r['processed']:9d} {r['dropped_busy']:8d} "
+              f"{r['lost_other']:5d} {r['p50']:8.2f} {r['p99']:8.2f} {r['mean']:8.2f} "
+              f"{r['cpu_ms_per_frame']:13.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

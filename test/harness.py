@@ -1,0 +1,169 @@
+"""Shared plumbing of the interop test and the benchmark: the node process, a Cyclone DDS
+participant speaking ROS 2 type and topic names, and the synthetic frames.
+
+Run inside an isolated network namespace (test/run_interop.sh, test/run_bench.sh): DDS
+discovery multicasts, and nothing may leave the machine."""
+
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+from cyclonedds.core import Policy, Qos
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+from cyclonedds.util import duration
+
+import ros2_types as t
+
+ROOT = Path(__file__).resolve().parent.parent
+# Set by test/run_interop.sh and test/run_bench.sh after building.
+BIN_DIR = Path(os.environ.get("VERNIER_ROS_BIN_DIR", ROOT / "target" / "release"))
+NODE_BIN = BIN_DIR / "detector"
+RENDER_BIN = BIN_DIR / "render_test_frames"
+PARAMS_FILE = ROOT / "params" / "detector.yaml"
+
+# ROS 2 speaks XCDR1 (plain CDR); ask Cyclone for it explicitly.
+XCDR1 = Policy.DataRepresentation(use_cdrv0_representation=True)
+# Sensor-data image writer: best effort, newest sample only.
+IMAGE_QOS = Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(1), XCDR1)
+# Reliable readers: a best-effort writer would never match them, the node's are reliable.
+RESULT_QOS = Qos(
+    Policy.Reliability.Reliable(duration(seconds=1)),
+    Policy.History.KeepLast(200),
+    XCDR1,
+)
+
+
+def render_frames(out_dir, count, size=1024, period=10.0, pixel_size=0.8, seed=1):
+    """Renders `count` frames with the project's renderer; returns (truth dict, list of bytes)."""
+    subprocess.run(
+        [str(RENDER_BIN), "--out", str(out_dir), "--count", str(count), "--size", str(size),
+         "--period", str(period), "--pixel-size", str(pixel_size), "--seed", str(seed)],
+        check=True,
+    )
+    truth = json.loads((Path(out_dir) / "truth.json").read_text())
+    frames = [(Path(out_dir) / f["file"]).read_bytes() for f in truth["frames"]]
+    return truth, frames
+
+
+def start_node(domain_id, extra_args, log_path):
+    """Starts the detector node with the project's parameter file plus `extra_args`."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
+    log = open(log_path, "w")
+    return subprocess.Popen(
+        [str(NODE_BIN), "--ros-args", "--params-file", str(PARAMS_FILE), *extra_args],
+        stdout=log, stderr=subprocess.STDOUT, env=env,
+    )
+
+
+def stop_node(proc):
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def mono8(width, height, data, sec, nanosec=0, frame_id="camera", encoding="mono8", step=None):
+    return t.Image(
+        header=t.Header(stamp=t.Time(sec=sec, nanosec=nanosec), frame_id=frame_id),
+        height=height, width=width, encoding=encoding, is_bigendian=0,
+        step=width if step is None else step, data=data,
+    )
+
+
+class RosPeer:
+    """A Cyclone DDS participant with an image writer and readers on the node's outputs."""
+
+    def __init__(self, domain_id, node="/vernier_detector", marker_ids=(0,)):
+        self.dp = DomainParticipant(domain_id)
+        self.image_writer = DataWriter(self.dp, Topic(self.dp, "rt/image", t.Image), qos=IMAGE_QOS)
+
+        def reader(name, kind):
+            return DataReader(self.dp, Topic(self.dp, name, kind), qos=RESULT_QOS)
+
+        self.markers = reader(f"rt{node}/markers", t.MarkerPoseArray)
+        self.poses = {i: reader(f"rt{node}/marker_{i}/pose", t.PoseStamped) for i in marker_ids}
+        self.tf = reader("rt/tf", t.TFMessage)
+        self.diagnostics = reader("rt/diagnostics", t.DiagnosticArray)
+
+    def wait_for_node(self, timeout=30.0):
+        """Waits until the node's image reader and output writers are matched."""
+        deadline = time.monotonic() + timeout
+        readers = [self.markers, *self.poses.values()]
+        while time.monotonic() < deadline:
+            if self.image_writer.get_matched_subscriptions() and all(
+                r.get_matched_publications() for r in readers
+            ):
+                return True
+            time.sleep(0.1)
+        return False
+
+    def take_all(self, reader):
+        out = []
+        while True:
+            batch = reader.take(N=100)
+            if not batch:
+                return out
+            out.extend(batch)
+
+
+class ParamClient:
+    """`ros2 param get/set` over the node's rcl_interfaces services, Cyclone DDS side.
+
+    ros2-client serves them with the "enhanced" RPC-over-DDS mapping (rmw_fastrtps style: no
+    request header in the payload); a request without a related-sample identity is answered
+    with its own sample identity, so a plain DDS writer/reader pair can call the service."""
+
+    SERVICE_QOS = Qos(Policy.Reliability.Reliable(duration(seconds=1)),
+                      Policy.History.KeepLast(10), XCDR1)
+
+    def __init__(self, dp, node="/vernier_detector"):
+        def pair(service, req, resp):
+            w = DataWriter(dp, Topic(dp, f"rq{node}/{service}Request", req), qos=self.SERVICE_QOS)
+            r = DataReader(dp, Topic(dp, f"rr{node}/{service}Reply", resp), qos=self.SERVICE_QOS)
+            return w, r
+
+        self.set_w, self.set_r = pair("set_parameters", t.SetParametersRequest,
+                                      t.SetParametersResponse)
+        self.get_w, self.get_r = pair("get_parameters", t.GetParametersRequest,
+                                      t.GetParametersResponse)
+
+    def wait_ready(self, timeout=20.0):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if all([self.set_w.get_matched_subscriptions(), self.set_r.get_matched_publications(),
+                    self.get_w.get_matched_subscriptions(), self.get_r.get_matched_publications()]):
+                return True
+            time.sleep(0.1)
+        return False
+
+    @staticmethod
+    def _call(writer, reader, request, timeout):
+        reader.take(N=100)
+        writer.write(request)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            replies = reader.take(N=1)
+            if replies:
+                return replies[0]
+            time.sleep(0.02)
+        raise AssertionError(f"no reply to {type(request).__name__} within {timeout} s")
+
+    def set(self, name, value, timeout=10.0):
+        """Sets one parameter; `value` is a t.ParameterValue. Returns (successful, reason)."""
+        reply = self._call(self.set_w, self.set_r,
+                           t.SetParametersRequest(parameters=[t.Parameter(name=name, value=value)]),
+                           timeout)
+        result = reply.results[0]
+        return result.successful, result.reason
+
+    def get(self, name, timeout=10.0):
+        reply = self._call(self.get_w, self.get_r, t.GetParametersRequest(names=[name]), timeout)
+        return reply.values[0]

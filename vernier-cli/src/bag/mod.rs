@@ -1,0 +1,400 @@
+//! `vernier bag`: replays the images of a rosbag2 MCAP recording through the detector, with
+//! the ROS node's parameter file, and writes the poses back as MCAP (the node's topics and
+//! message types) or as a pose table (CSV / JSON Lines).
+
+mod messages;
+mod params;
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use clap::Parser;
+use vernier::{Detector, GreyImage, PixelFormat};
+
+use crate::batch::progress_bar;
+use crate::inputs::natural_cmp;
+use crate::pose_table::{PoseRow, TableFormat, TableWriter};
+use messages::{from_cdr, to_cdr};
+use messages::{Header, Image, MarkerPose, MarkerPoseArray, Pose, PoseStamped};
+use params::{read_params, ReplayParams};
+
+/// The message type `vernier bag` reads.
+const IMAGE_TYPE: &str = "sensor_msgs/msg/Image";
+
+/// Arguments of `vernier bag`.
+#[derive(Parser)]
+pub struct BagArgs {
+    /// rosbag2 recording: an `.mcap` file, or a rosbag2 folder (its `.mcap` files in order).
+    #[arg(long)]
+    input: PathBuf,
+    /// Image topic (sensor_msgs/msg/Image: mono8, mono16, rgb8, bgr8, rgba8, bgra8).
+    #[arg(long, default_value = "/camera/image_raw")]
+    topic: String,
+    /// ROS parameter file of the detector node (params/detector.yaml); default: the node's
+    /// defaults.
+    #[arg(long)]
+    params: Option<PathBuf>,
+    /// JSON pattern file; overrides the parameter file's `pattern_file`.
+    #[arg(long)]
+    pattern: Option<PathBuf>,
+    /// Physical period (in `period_unit`, µm by default); overrides the parameter file.
+    #[arg(long)]
+    period: Option<f64>,
+    /// Output: `.mcap` (geometry_msgs/PoseStamped on `<namespace>/marker_<id>/pose` and
+    /// vernier_ros/MarkerPoseArray on `<namespace>/markers`, SI units, as the node
+    /// publishes them), or a pose table `.csv` / `.jsonl` (pattern units, like `detect`).
+    #[arg(long)]
+    output: PathBuf,
+    /// Namespace of the output topics (the node's name).
+    #[arg(long, default_value = "/vernier_detector")]
+    namespace: String,
+}
+
+/// The MCAP files of a recording, in order.
+fn bag_files(input: &Path) -> Result<Vec<PathBuf>, String> {
+    if !input.is_dir() {
+        return match input.extension().and_then(|e| e.to_str()) {
+            Some("mcap") => Ok(vec![input.to_path_buf()]),
+            _ => Err(format!(
+                "{}: expected an .mcap file or a rosbag2 folder",
+                input.display()
+            )),
+        };
+    }
+    let listed: Vec<PathBuf> = std::fs::read_dir(input)
+        .map_err(|e| format!("{}: {e}", input.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .collect();
+    let with_ext = |ext: &str| -> Vec<PathBuf> {
+        listed
+            .iter()
+            .filter(|p| p.extension().is_some_and(|e| e == ext))
+            .cloned()
+            .collect()
+    };
+    let mut files = with_ext("mcap");
+    if files.is_empty() {
+        let hint = if with_ext("db3").is_empty() {
+            ""
+        } else {
+            " (SQLite .db3 storage is not supported: record with `--storage mcap` or convert \
+             with `ros2 bag convert`)"
+        };
+        return Err(format!("{}: no .mcap file{hint}", input.display()));
+    }
+    files.sort_by(|a, b| natural_cmp(&a.to_string_lossy(), &b.to_string_lossy()));
+    Ok(files)
+}
+
+/// Where the results go.
+enum Sink {
+    Mcap(Box<McapSink>),
+    Table(TableWriter<BufWriter<File>>),
+}
+
+/// MCAP output: the node's topics, schemas in `ros2msg`, CDR payloads.
+struct McapSink {
+    writer: mcap::Writer<BufWriter<File>>,
+    namespace: String,
+    pose_schema: u16,
+    markers_channel: u16,
+    pose_channels: BTreeMap<u64, u16>,
+    sequences: BTreeMap<u16, u32>,
+}
+
+impl McapSink {
+    fn create(path: &Path, namespace: &str) -> Result<Self, String> {
+        let file = File::create(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        let mcap_error = |e: mcap::McapError| format!("{}: {e}", path.display());
+        let mut writer = mcap::WriteOptions::new()
+            .profile("ros2")
+            .create(BufWriter::new(file))
+            .map_err(mcap_error)?;
+        let pose_schema = writer
+            .add_schema(
+                "geometry_msgs/msg/PoseStamped",
+                "ros2msg",
+                messages::pose_stamped_schema().as_bytes(),
+            )
+            .map_err(mcap_error)?;
+        let array_schema = writer
+            .add_schema(
+                "vernier_ros/msg/MarkerPoseArray",
+                "ros2msg",
+                messages::marker_pose_array_schema().as_bytes(),
+            )
+            .map_err(mcap_error)?;
+        let namespace = namespace.trim_end_matches('/').to_string();
+        let markers_channel = writer
+            .add_channel(
+                array_schema,
+                &format!("{namespace}/markers"),
+                "cdr",
+                &BTreeMap::new(),
+            )
+            .map_err(mcap_error)?;
+        Ok(McapSink {
+            writer,
+            namespace,
+            pose_schema,
+            markers_channel,
+            pose_channels: BTreeMap::new(),
+            sequences: BTreeMap::new(),
+        })
+    }
+
+    fn write(&mut self, channel: u16, time_ns: u64, payload: &[u8]) -> Result<(), String> {
+        let sequence = self.sequences.entry(channel).or_insert(0);
+        *sequence += 1;
+        let header = mcap::records::MessageHeader {
+            channel_id: channel,
+            sequence: *sequence,
+            log_time: time_ns,
+            publish_time: time_ns,
+        };
+        self.writer
+            .write_to_known_channel(&header, payload)
+            .map_err(|e| format!("cannot write the output: {e}"))
+    }
+
+    /// The frame's marker array, and one PoseStamped per marker ID (the first of duplicates).
+    fn frame(&mut self, time_ns: u64, array: &MarkerPoseArray) -> Result<(), String> {
+        self.write(self.markers_channel, time_ns, &to_cdr(array)?)?;
+        let mut done = Vec::new();
+        for m in &array.markers {
+            if done.contains(&m.id) {
+                continue;
+            }
+            done.push(m.id);
+            let channel = match self.pose_channels.get(&m.id) {
+                Some(&c) => c,
+                None => {
+                    let c = self
+                        .writer
+                        .add_channel(
+                            self.pose_schema,
+                            &format!("{}/marker_{}/pose", self.namespace, m.id),
+                            "cdr",
+                            &BTreeMap::new(),
+                        )
+                        .map_err(|e| format!("cannot write the output: {e}"))?;
+                    self.pose_channels.insert(m.id, c);
+                    c
+                }
+            };
+            let pose = PoseStamped {
+                header: array.header.clone(),
+                pose: m.pose,
+            };
+            self.write(channel, time_ns, &to_cdr(&pose)?)?;
+        }
+        Ok(())
+    }
+
+    fn finish(mut self) -> Result<(), String> {
+        self.writer
+            .finish()
+            .map(|_| ())
+            .map_err(|e| format!("cannot finish the output: {e}"))
+    }
+}
+
+/// Detector, parameters and sink of a replay.
+struct Replay {
+    detector: Detector,
+    params: ReplayParams,
+    period: f64,
+    sink: Sink,
+    frame: u64,
+    failures: usize,
+}
+
+impl Replay {
+    /// Processes one image message (`time_ns`: its log time).
+    fn image(&mut self, topic: &str, time_ns: u64, payload: &[u8]) -> Result<(), String> {
+        let start = Instant::now();
+        let msg: Result<Image, String> = from_cdr(payload);
+        let result = msg.as_ref().map_err(Clone::clone).and_then(|msg| {
+            let format = PixelFormat::from_ros_encoding(&msg.encoding, msg.is_bigendian != 0)
+                .ok_or_else(|| format!("unsupported image encoding `{}`", msg.encoding))?;
+            let grey = GreyImage::from_raw(
+                msg.width as usize,
+                msg.height as usize,
+                msg.step as usize,
+                format,
+                &msg.data,
+            )
+            .map_err(|e| e.to_string())?;
+            let mut markers = self.detector.detect(&grey).map_err(|e| e.to_string())?;
+            let p = &self.params;
+            markers.retain(|m| {
+                (p.marker_ids.is_empty() || p.marker_ids.contains(&m.id))
+                    && m.quality >= p.min_quality
+            });
+            vernier::detector::flag_duplicate_ids(&mut markers);
+            Ok((markers, grey.width().min(grey.height())))
+        });
+        let time_ms = start.elapsed().as_secs_f64() * 1e3;
+        let header = match &msg {
+            Ok(m) => Header {
+                stamp: m.header.stamp,
+                frame_id: if self.params.camera_frame.is_empty() {
+                    m.header.frame_id.clone()
+                } else {
+                    self.params.camera_frame.clone()
+                },
+            },
+            Err(_) => Header::default(),
+        };
+        if let Err(e) = &result {
+            eprintln!("vernier: {topic} message {}: {e}", self.frame);
+            self.failures += 1;
+        }
+        match &mut self.sink {
+            Sink::Table(table) => {
+                let stamp = msg.as_ref().ok().map(|m| m.header.stamp.seconds());
+                let markers = result.map(|(m, _)| m);
+                let rows = PoseRow::from_result(self.frame, stamp, topic, &markers, time_ms);
+                table
+                    .write(&rows)
+                    .map_err(|e| format!("cannot write the output: {e}"))?;
+            }
+            Sink::Mcap(sink) => {
+                // Failed frames still get an (empty) array, as the node publishes them.
+                let (markers, side) = result.unwrap_or_default();
+                let scale = self.params.metres_per_unit;
+                let window = self.params.settings.window_size.unwrap_or(side) as f64;
+                let array = MarkerPoseArray {
+                    header,
+                    markers: markers
+                        .iter()
+                        .map(|m| {
+                            let si = vernier::MarkerPose {
+                                pose: m.pose.scaled(scale),
+                                ..m.clone()
+                            };
+                            MarkerPose {
+                                id: m.id,
+                                pose: Pose::from_vernier(&si.pose),
+                                pixel_size: si.pose.pixel_size,
+                                quality: m.quality,
+                                covariance: si.covariance(self.period * scale, window),
+                                duplicate_id: m.duplicate_id,
+                            }
+                        })
+                        .collect(),
+                };
+                sink.frame(time_ns, &array)?;
+            }
+        }
+        self.frame += 1;
+        Ok(())
+    }
+}
+
+/// Runs `vernier bag`.
+pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
+    let files = bag_files(&args.input)?;
+    let mut params = match &args.params {
+        Some(path) => read_params(path)?,
+        None => ReplayParams::new(),
+    };
+    if let Some(p) = &args.pattern {
+        params.settings.pattern_file = Some(p.clone());
+    }
+    if let Some(p) = args.period {
+        params.settings.period = Some(p);
+    }
+    let config = params.settings.to_config().map_err(|e| e.to_string())?;
+    let period = config.period();
+    let detector = Detector::new(config).map_err(|e| e.to_string())?;
+    let out = &args.output;
+    let sink = match out.extension().and_then(|e| e.to_str()) {
+        Some("mcap") => Sink::Mcap(Box::new(McapSink::create(out, &args.namespace)?)),
+        Some(ext @ ("csv" | "jsonl" | "json")) => {
+            let format = if ext == "csv" {
+                TableFormat::Csv
+            } else {
+                TableFormat::Jsonl
+            };
+            let file = File::create(out).map_err(|e| format!("{}: {e}", out.display()))?;
+            Sink::Table(
+                TableWriter::new(BufWriter::new(file), format)
+                    .map_err(|e| format!("{}: {e}", out.display()))?,
+            )
+        }
+        _ => {
+            return Err(format!(
+                "--output `{}`: expected a .mcap, .csv or .jsonl file",
+                out.display()
+            ))
+        }
+    };
+    let mut replay = Replay {
+        detector,
+        params,
+        period,
+        sink,
+        frame: 0,
+        failures: 0,
+    };
+    for file in &files {
+        let data = std::fs::read(file).map_err(|e| format!("{}: {e}", file.display()))?;
+        let bad = |e: mcap::McapError| format!("{}: {e}", file.display());
+        let total = mcap::Summary::read(&data)
+            .ok()
+            .flatten()
+            .map(|s| {
+                s.channels
+                    .values()
+                    .filter(|c| c.topic == args.topic)
+                    .filter_map(|c| s.stats.as_ref()?.channel_message_counts.get(&c.id))
+                    .sum::<u64>()
+            })
+            .unwrap_or(0);
+        let progress = progress_bar(total, "frames");
+        for message in mcap::MessageStream::new(&data).map_err(bad)? {
+            let message = message.map_err(bad)?;
+            let channel = &message.channel;
+            if channel.topic != args.topic {
+                continue;
+            }
+            let schema = channel.schema.as_ref().map(|s| s.name.as_str());
+            if schema.is_some_and(|s| s != IMAGE_TYPE) || channel.message_encoding != "cdr" {
+                return Err(format!(
+                    "{}: topic {} carries {} ({}), expected {IMAGE_TYPE} (cdr)",
+                    file.display(),
+                    args.topic,
+                    schema.unwrap_or("no schema"),
+                    channel.message_encoding
+                ));
+            }
+            let time_ns = message.log_time;
+            progress.suspend(|| replay.image(&args.topic, time_ns, &message.data))?;
+            progress.inc(1);
+        }
+        progress.finish_and_clear();
+    }
+    if replay.frame == 0 {
+        return Err(format!(
+            "{}: no message on topic {}",
+            args.input.display(),
+            args.topic
+        ));
+    }
+    match replay.sink {
+        Sink::Mcap(sink) => sink.finish()?,
+        Sink::Table(table) => table
+            .finish()
+            .map_err(|e| format!("cannot write the output: {e}"))?,
+    }
+    Ok(if replay.failures == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}

@@ -1,0 +1,383 @@
+//! Pose time series as written by `vernier detect` and `vernier bag` and read by
+//! `vernier plot`: one row per frame and marker, as CSV or JSON Lines with the same columns.
+//!
+//! Columns: `frame` (0-based index in the run), `stamp` (acquisition time, s since the Unix
+//! epoch: the ROS header stamp, or the image file's modification time), `source` (image
+//! file or bag topic), `id`, pose `x, y, z` (pattern units, µm), `alpha, beta, gamma` (rad),
+//! `pixel_size` (pattern units per pixel), `x_px, y_px` (pattern origin in the image, px),
+//! `quality`, `duplicate_id`, `time_ms` (processing time of the frame), `error`. A frame
+//! without marker or whose detection failed has one row with empty marker columns.
+
+use std::io::Write;
+
+use serde::{Deserialize, Serialize};
+use vernier::MarkerPose;
+
+/// One marker in one frame (or one frame without marker).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PoseRow {
+    /// Index of the frame in the run, from 0.
+    pub frame: u64,
+    /// Acquisition time, seconds since the Unix epoch, when known.
+    pub stamp: Option<f64>,
+    /// Image file or bag topic.
+    pub source: String,
+    /// Marker ID (0 for markers without ID); `None` when the frame has no marker.
+    pub id: Option<u64>,
+    /// Position x of the pattern origin in the camera frame, pattern units.
+    pub x: Option<f64>,
+    /// Position y, pattern units.
+    pub y: Option<f64>,
+    /// Position z (0 for planar poses), pattern units.
+    pub z: Option<f64>,
+    /// In-plane angle, rad.
+    pub alpha: Option<f64>,
+    /// Out-of-plane angle about y, rad.
+    pub beta: Option<f64>,
+    /// Out-of-plane angle about x, rad.
+    pub gamma: Option<f64>,
+    /// Pattern units per pixel.
+    pub pixel_size: Option<f64>,
+    /// Pattern origin in the image, column, pixels.
+    pub x_px: Option<f64>,
+    /// Pattern origin in the image, row, pixels.
+    pub y_px: Option<f64>,
+    /// Detection quality (0–1).
+    pub quality: Option<f64>,
+    /// True when another marker of the frame has the same ID.
+    pub duplicate_id: Option<bool>,
+    /// Processing time of the frame, ms.
+    pub time_ms: f64,
+    /// Why the frame failed, if it did.
+    pub error: Option<String>,
+}
+
+/// Column names, in order.
+pub const COLUMNS: [&str; 17] = [
+    "frame",
+    "stamp",
+    "source",
+    "id",
+    "x",
+    "y",
+    "z",
+    "alpha",
+    "beta",
+    "gamma",
+    "pixel_size",
+    "x_px",
+    "y_px",
+    "quality",
+    "duplicate_id",
+    "time_ms",
+    "error",
+];
+
+impl PoseRow {
+    /// The rows of one frame: one per marker, or one empty row (with the error, if any).
+    pub fn from_result(
+        frame: u64,
+        stamp: Option<f64>,
+        source: &str,
+        result: &Result<Vec<MarkerPose>, String>,
+        time_ms: f64,
+    ) -> Vec<PoseRow> {
+        let base = PoseRow {
+            frame,
+            stamp,
+            source: source.to_string(),
+            time_ms,
+            ..PoseRow::default()
+        };
+        match result {
+            Ok(markers) if !markers.is_empty() => markers
+                .iter()
+                .map(|m| {
+                    let p = &m.pose;
+                    PoseRow {
+                        id: Some(m.id),
+                        x: Some(p.x),
+                        y: Some(p.y),
+                        z: Some(p.z),
+                        alpha: Some(p.alpha),
+                        beta: Some(p.beta),
+                        gamma: Some(p.gamma),
+                        pixel_size: Some(p.pixel_size),
+                        x_px: Some(m.origin_px.x),
+                        y_px: Some(m.origin_px.y),
+                        quality: Some(m.quality),
+                        duplicate_id: Some(m.duplicate_id),
+                        ..base.clone()
+                    }
+                })
+                .collect(),
+            Ok(_) => vec![base],
+            Err(e) => vec![PoseRow {
+                error: Some(e.clone()),
+                ..base
+            }],
+        }
+    }
+
+    /// The CSV fields, in [`COLUMNS`] order.
+    fn csv_fields(&self) -> [String; 17] {
+        let f = |v: Option<f64>| v.map(|v| v.to_string()).unwrap_or_default();
+        [
+            self.frame.to_string(),
+            f(self.stamp),
+            csv_escape(&self.source),
+            self.id.map(|v| v.to_string()).unwrap_or_default(),
+            f(self.x),
+            f(self.y),
+            f(self.z),
+            f(self.alpha),
+            f(self.beta),
+            f(self.gamma),
+            f(self.pixel_size),
+            f(self.x_px),
+            f(self.y_px),
+            f(self.quality),
+            self.duplicate_id.map(|v| v.to_string()).unwrap_or_default(),
+            format!("{:.3}", self.time_ms),
+            csv_escape(self.error.as_deref().unwrap_or("")),
+        ]
+    }
+}
+
+/// Quotes a CSV field when it holds a comma, quote or line break.
+fn csv_escape(s: &str) -> String {
+    if s.contains([',', '"', '\n', '\r']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
+
+/// Output format of a pose table.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum TableFormat {
+    /// One JSON object per image: `image`, `markers` (each with `id`, `x`, `y`, `z`, `alpha`,
+    /// `beta`, `gamma`, `pixel_size`, `x_px`, `y_px`, `quality`, `duplicate_id`), `time_ms`
+    /// and, for a failed image, `error`.
+    Json,
+    /// Comma-separated values with a header line, one row per image and marker.
+    Csv,
+    /// JSON Lines: one JSON object per image and marker, same columns as CSV.
+    Jsonl,
+}
+
+/// Writes rows to a stream (header first for CSV).
+pub struct TableWriter<W: Write> {
+    out: W,
+    format: TableFormat,
+}
+
+impl<W: Write> TableWriter<W> {
+    /// Starts a table (writes the CSV header).
+    pub fn new(mut out: W, format: TableFormat) -> std::io::Result<Self> {
+        if format == TableFormat::Csv {
+            writeln!(out, "{}", COLUMNS.join(","))?;
+        }
+        Ok(TableWriter { out, format })
+    }
+
+    /// Appends the rows of one frame.
+    pub fn write(&mut self, rows: &[PoseRow]) -> std::io::Result<()> {
+        if self.format == TableFormat::Json {
+            return self.write_image_object(rows);
+        }
+        for row in rows {
+            match self.format {
+                TableFormat::Csv => writeln!(self.out, "{}", row.csv_fields().join(","))?,
+                TableFormat::Jsonl => {
+                    serde_json::to_writer(&mut self.out, row)?;
+                    writeln!(self.out)?;
+                }
+                TableFormat::Json => {}
+            }
+        }
+        Ok(())
+    }
+
+    /// One JSON object for the frame whose rows are `rows` (all from the same image).
+    fn write_image_object(&mut self, rows: &[PoseRow]) -> std::io::Result<()> {
+        let Some(first) = rows.first() else {
+            return Ok(());
+        };
+        let markers: Vec<serde_json::Value> = rows
+            .iter()
+            .filter(|r| r.id.is_some())
+            .map(|r| {
+                serde_json::json!({
+                    "id": r.id, "x": r.x, "y": r.y, "z": r.z,
+                    "alpha": r.alpha, "beta": r.beta, "gamma": r.gamma,
+                    "pixel_size": r.pixel_size, "x_px": r.x_px, "y_px": r.y_px,
+                    "quality": r.quality, "duplicate_id": r.duplicate_id,
+                })
+            })
+            .collect();
+        let mut object = serde_json::json!({
+            "image": first.source,
+            "markers": markers,
+            "time_ms": first.time_ms,
+        });
+        if let Some(error) = &first.error {
+            object["error"] = serde_json::Value::String(error.clone());
+        }
+        serde_json::to_writer(&mut self.out, &object)?;
+        writeln!(self.out)
+    }
+
+    /// Flushes the stream.
+    pub fn finish(mut self) -> std::io::Result<()> {
+        self.out.flush()
+    }
+}
+
+/// Splits one CSV line into fields (double-quoted fields may hold commas and `""`).
+fn split_csv_line(line: &str) -> Vec<String> {
+    let mut fields = Vec::new();
+    let mut field = String::new();
+    let mut quoted = false;
+    let mut chars = line.chars().peekable();
+    while let Some(c) = chars.next() {
+        match (c, quoted) {
+            ('"', true) if chars.peek() == Some(&'"') => {
+                field.push('"');
+                chars.next();
+            }
+            ('"', _) => quoted = !quoted,
+            (',', false) => fields.push(std::mem::take(&mut field)),
+            _ => field.push(c),
+        }
+    }
+    fields.push(field);
+    fields
+}
+
+/// Reads a pose table written by [`TableWriter`] (CSV when the first line is the header,
+/// else JSON Lines). Unknown CSV columns are ignored; `frame` and `time_ms` may be missing.
+pub fn read_table(text: &str) -> Result<Vec<PoseRow>, String> {
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
+    let Some((_, first)) = lines.next() else {
+        return Ok(Vec::new());
+    };
+    if first.trim_start().starts_with('{') {
+        return text
+            .lines()
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty())
+            .map(|(i, l)| serde_json::from_str(l).map_err(|e| format!("line {}: {e}", i + 1)))
+            .collect();
+    }
+    let header = split_csv_line(first);
+    let column = |name: &str| header.iter().position(|h| h.trim() == name);
+    let index: Vec<Option<usize>> = COLUMNS.iter().map(|c| column(c)).collect();
+    if index[4].is_none() || index[5].is_none() {
+        return Err(format!(
+            "not a pose table: the header `{first}` has no `x` and `y` columns"
+        ));
+    }
+    let mut rows = Vec::new();
+    for (i, line) in lines {
+        let fields = split_csv_line(line);
+        let get = |k: usize| -> &str {
+            index[k]
+                .and_then(|j| fields.get(j))
+                .map_or("", |s| s.as_str())
+        };
+        let number = |k: usize| -> Result<Option<f64>, String> {
+            let s = get(k).trim();
+            if s.is_empty() {
+                return Ok(None);
+            }
+            s.parse::<f64>().map(Some).map_err(|_| {
+                format!(
+                    "line {}: column `{}`: `{s}` is not a number",
+                    i + 1,
+                    COLUMNS[k]
+                )
+            })
+        };
+        let text_field = |k: usize| Some(get(k).to_string()).filter(|s| !s.is_empty());
+        rows.push(PoseRow {
+            frame: number(0)?.map_or(rows.len() as u64, |v| v as u64),
+            stamp: number(1)?,
+            source: get(2).to_string(),
+            id: number(3)?.map(|v| v as u64),
+            x: number(4)?,
+            y: number(5)?,
+            z: number(6)?,
+            alpha: number(7)?,
+            beta: number(8)?,
+            gamma: number(9)?,
+            pixel_size: number(10)?,
+            x_px: number(11)?,
+            y_px: number(12)?,
+            quality: number(13)?,
+            duplicate_id: text_field(14).map(|s| s == "true"),
+            time_ms: number(15)?.unwrap_or(0.0),
+            error: text_field(16),
+        });
+    }
+    Ok(rows)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> Vec<PoseRow> {
+        vec![
+            PoseRow {
+                frame: 0,
+                stamp: Some(1.7e9 + 0.25),
+                source: "a,b.png".into(),
+                id: Some(3),
+                x: Some(1.5),
+                y: Some(-2.0),
+                z: Some(0.0),
+                alpha: Some(0.1),
+                beta: Some(0.0),
+                gamma: Some(0.0),
+                pixel_size: Some(0.5),
+                x_px: Some(10.25),
+                y_px: Some(-3.0),
+                quality: Some(0.9),
+                duplicate_id: Some(false),
+                time_ms: 12.5,
+                error: None,
+            },
+            PoseRow {
+                frame: 1,
+                source: "c.png".into(),
+                time_ms: 3.0,
+                error: Some("no \"pattern\" found".into()),
+                ..PoseRow::default()
+            },
+        ]
+    }
+
+    #[test]
+    fn csv_and_jsonl_round_trip() {
+        for format in [TableFormat::Csv, TableFormat::Jsonl] {
+            let mut bytes = Vec::new();
+            let mut w = TableWriter::new(&mut bytes, format).unwrap();
+            w.write(&sample()).unwrap();
+            w.finish().unwrap();
+            let text = String::from_utf8(bytes).unwrap();
+            assert_eq!(read_table(&text).unwrap(), sample(), "{format:?}:\n{text}");
+        }
+    }
+
+    #[test]
+    fn rejects_other_tables() {
+        assert!(read_table("a,b\n1,2\n").is_err());
+        assert!(read_table("frame,x,y\n0,abc,1\n")
+            .unwrap_err()
+            .contains("not a number"));
+    }
+}

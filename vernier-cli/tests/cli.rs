@@ -1,0 +1,169 @@
+//! End-to-end tests of the `vernier` binary: render → detect round trip and error handling.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn vernier() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_vernier"))
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("vernier-cli-{name}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn example_pattern() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../examples/periodic_p15.json")
+}
+
+#[test]
+fn render_then_detect_round_trip_json_and_csv() {
+    let dir = temp_dir("roundtrip");
+    let image = dir.join("grid.png");
+    let status = vernier()
+        .args(["render", "--pattern"])
+        .arg(example_pattern())
+        .args([
+            "--pose",
+            "-2.5,4.0,0.3",
+            "--pixel-size",
+            "1.1",
+            "--size",
+            "301x240",
+            "--bits",
+            "16",
+            "--blur",
+            "0.5",
+        ])
+        .arg(&image)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let out = vernier()
+        .args(["detect", "--pattern"])
+        .arg(example_pattern())
+        .arg(&image)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let line = String::from_utf8(out.stdout).unwrap();
+    let json: serde_json::Value = serde_json::from_str(line.trim()).unwrap();
+    // Default format: one JSON object per image.
+    assert_eq!(json["image"].as_str().unwrap(), image.display().to_string());
+    assert!(json["time_ms"].as_f64().unwrap() >= 0.0);
+    let marker = &json["markers"][0];
+    for key in [
+        "id",
+        "x",
+        "y",
+        "z",
+        "alpha",
+        "beta",
+        "gamma",
+        "pixel_size",
+        "x_px",
+        "y_px",
+        "quality",
+    ] {
+        assert!(marker.get(key).is_some(), "missing {key} in {line}");
+    }
+    assert!(json["time_ms"].as_f64().unwrap() >= 0.0);
+    // True pose (−2.5, 4.0, 0.3); P = 15 so the grid pose is already in [−P/2, P/2).
+    assert!((marker["x"].as_f64().unwrap() + 2.5).abs() < 2e-3, "{line}");
+    assert!((marker["y"].as_f64().unwrap() - 4.0).abs() < 2e-3, "{line}");
+    assert!(
+        (marker["alpha"].as_f64().unwrap() - 0.3).abs() < 1e-5,
+        "{line}"
+    );
+    assert!(
+        (marker["pixel_size"].as_f64().unwrap() - 1.1).abs() < 1e-5,
+        "{line}"
+    );
+
+    let out = vernier()
+        .args(["detect", "--format", "csv", "--period", "15"])
+        .arg(&image)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let text = String::from_utf8(out.stdout).unwrap();
+    let mut lines = text.lines();
+    assert!(lines
+        .next()
+        .unwrap()
+        .starts_with("frame,stamp,source,id,x,y,"));
+    assert_eq!(lines.next().unwrap().split(',').count(), 17);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn bad_input_gives_one_line_errors_and_failure_codes() {
+    let dir = temp_dir("errors");
+    let bad_json = dir.join("bad.json");
+    std::fs::write(&bad_json, "{ \"PeriodicPattern\": { \"period\": 15.0, ").unwrap();
+    let empty_png = dir.join("empty.png");
+    std::fs::write(&empty_png, b"").unwrap();
+    let cases: Vec<Vec<std::ffi::OsString>> = vec![
+        vec![
+            "detect".into(),
+            "--pattern".into(),
+            bad_json.clone().into(),
+            "x.png".into(),
+        ],
+        vec![
+            "detect".into(),
+            "--period".into(),
+            "15".into(),
+            empty_png.clone().into(),
+        ],
+        vec![
+            "detect".into(),
+            "--period".into(),
+            "15".into(),
+            "/nonexistent.png".into(),
+        ],
+        vec![
+            "detect".into(),
+            "--period".into(),
+            "-3".into(),
+            "x.png".into(),
+        ],
+        vec![
+            "render".into(),
+            "--pattern".into(),
+            example_pattern().into(),
+            "--pose".into(),
+            "1,2".into(),
+            "--pixel-size".into(),
+            "1".into(),
+            "--size".into(),
+            "64x64".into(),
+            dir.join("o.png").into(),
+        ],
+        vec![
+            "render".into(),
+            "--pattern".into(),
+            example_pattern().into(),
+            "--pose".into(),
+            "1,2,0".into(),
+            "--pixel-size".into(),
+            "1".into(),
+            "--size".into(),
+            "0x64".into(),
+            dir.join("o.png").into(),
+        ],
+    ];
+    for args in cases {
+        let out = vernier().args(&args).output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} should fail");
+        assert!(stderr.starts_with("vernier: "), "{args:?}: {stderr}");
+        assert!(!stderr.contains("panicked"), "{args:?}: {stderr}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1,0 +1,102 @@
+//! HP code detector timing: `cargo bench -p vernier --bench hpcode` (`-- --quick` for a smoke
+//! run).
+//!
+//! Prints ms per frame (median, plans warm) on the full 2456×2054 `hpcode/Image100.png` and on a
+//! 1024×1024 crop of it holding both markers, for the default settings (window inside each
+//! marker, refined planes) and for the original's 512-px window, plus the cost of the finder
+//! search alone and the rest per marker (grouping, window, phase engine — once or twice, see
+//! `HpCodeDetector` —, ID). Reference: the original C++ takes 94 ms (full frame) and 61 ms (crop) on the
+//! project's 2-core machine (W 33, window 512). Images come from `$VERNIER_DATA_DIR`, else
+//! `../shared/data`.
+
+use std::path::PathBuf;
+use std::time::Instant;
+use vernier::hpcode::{HpCodeDetector, HpCodeParams};
+use vernier::GreyImage;
+
+fn data_dir() -> PathBuf {
+    std::env::var_os("VERNIER_DATA_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"))
+}
+
+fn median_ms(mut samples: Vec<f64>) -> f64 {
+    samples.sort_by(f64::total_cmp);
+    samples[samples.len() / 2]
+}
+
+/// Median ms of `runs` calls of `f` after one warm-up call.
+fn time(runs: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    median_ms(
+        (0..runs)
+            .map(|_| {
+                let t = Instant::now();
+                f();
+                t.elapsed().as_secs_f64() * 1e3
+            })
+            .collect(),
+    )
+}
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
+    let runs = if quick { 3 } else { 40 };
+    let path = data_dir().join("hpcode/Image100.png");
+    let full = match GreyImage::open(&path) {
+        Ok(image) => image,
+        Err(e) => {
+            eprintln!("hpcode bench: {e} (set VERNIER_DATA_DIR to the shared/data folder)");
+            std::process::exit(1);
+        }
+    };
+    // Both markers are near (637, 947) and (1323, 985), about 260 px wide.
+    let crop = match full.crop(468, 454, 1024, 1024) {
+        Ok(image) => image,
+        Err(e) => {
+            eprintln!("hpcode bench: {e}");
+            std::process::exit(1);
+        }
+    };
+    println!(
+        "{:<22} {:>10} {:>14} {:>10} {:>12} {:>9} {:>8}",
+        "image / window",
+        "finders ms",
+        "rest/marker ms",
+        "total ms",
+        "original ms",
+        "speed-up",
+        "markers"
+    );
+    for (name, image, original_ms) in [("2456x2054", &full, 94.0), ("1024x1024 crop", &crop, 61.0)]
+    {
+        for (window, size) in [("auto", None), ("512", Some(512))] {
+            let mut params = HpCodeParams::new(15.5, 33);
+            params.window_size = size;
+            let mut detector = match HpCodeDetector::new(params) {
+                Ok(d) => d,
+                Err(e) => {
+                    eprintln!("hpcode bench: {e}");
+                    std::process::exit(1);
+                }
+            };
+            let mut markers = 0;
+            let finders_ms = time(runs, || {
+                std::hint::black_box(detector.find_finders(image));
+            });
+            let total_ms = time(runs, || {
+                markers = detector.detect(image).map_or(0, |m| m.len());
+            });
+            println!(
+                "{:<22} {:>10.2} {:>14.2} {:>10.2} {:>12.0} {:>8.1}x {:>8}",
+                format!("{name} / {window}"),
+                finders_ms,
+                (total_ms - finders_ms) / markers.max(1) as f64,
+                total_ms,
+                original_ms,
+                original_ms / total_ms,
+                markers
+            );
+        }
+    }
+}

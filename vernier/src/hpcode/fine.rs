@@ -1,0 +1,210 @@
+//! Fine geometry of one marker from the phase planes of its window (METHOD.md §5.2.3, redone).
+//!
+//! The original picks the quadrant from the angle of plane 1 and assumes the window centre lies
+//! within half a period of the centre dot (§9.7). Here each pattern axis takes the signed plane
+//! whose gradient is closest to the finder direction of that axis; the marker width is measured
+//! in whole periods between the finders; and the marker centre is the grid point of the right
+//! phase nearest to the coarse centre from the finders, found by rounding the phases there to
+//! whole periods — any window placement works as long as the finders locate the centre within
+//! half a period.
+
+use super::grouping::FinderTriple;
+use super::marker_id::DotGrid;
+use crate::phase::{wrap_to_pi, PhasePlane};
+use nalgebra::{Matrix2, Vector2};
+use std::f64::consts::{FRAC_PI_2, PI, TAU};
+
+/// Largest angle between a pattern axis seen by the finders and the matching phase gradient,
+/// radians: a larger one means the window's grid is not this marker's.
+const MAX_AXIS_ERROR: f64 = 0.3;
+/// Largest relative difference between the grid period and twice the finders' module.
+const MAX_PERIOD_ERROR: f64 = 0.25;
+/// Largest distance of a finder leg from a whole number of periods, periods.
+const MAX_LEG_ERROR: f64 = 0.25;
+
+/// Marker grid measured in a window, in image pixels.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct MarkerGrid {
+    /// Phase plane along the pattern x axis (gradient pointing to +x), window frame.
+    pub plane_x: PhasePlane,
+    /// Phase plane along the pattern y axis, window frame.
+    pub plane_y: PhasePlane,
+    /// Which engine plane (0 or 1) became `plane_x`.
+    pub x_from_plane: usize,
+    /// Phase of both planes at the marker centre: 0 (a dot) when `W ≡ 1 (mod 4)`, π (the gap
+    /// between four dots) when `W ≡ 3 (mod 4)`.
+    pub center_phase: f64,
+    /// Whole periods between the window centre's node and the marker centre along x and y.
+    pub period_shift: (f64, f64),
+    /// Measured marker width in half-period cells `W` (odd).
+    pub half_periods: usize,
+    /// Dot positions (image pixels).
+    pub dots: DotGrid,
+}
+
+impl MarkerGrid {
+    /// Orientation of the marker in the image, radians (y down: clockwise positive): the
+    /// direction of the pattern x axis, averaged with that of the y axis turned back by a
+    /// quarter turn (`mirrored`: forward), so that a slightly sheared grid (perspective)
+    /// gives the same angle whichever axis is called x.
+    pub fn alpha(&self, mirrored: bool) -> f64 {
+        let quarter = if mirrored { -FRAC_PI_2 } else { FRAC_PI_2 };
+        let ax = self.plane_x.angle();
+        let shear = wrap_to_pi(self.plane_y.angle() - quarter - ax);
+        ax + shear / 2.0
+    }
+}
+
+/// Assigns the window planes to the marker axes seen by `triple`, measures the marker width and
+/// locates its centre.
+///
+/// `window_center` is the image pixel `(col, row)` at the window's centre index (the origin of
+/// the planes' frame). `None` when the planes do not match the finders' geometry (direction,
+/// period, legs of whole periods).
+pub(crate) fn locate(
+    planes: &[PhasePlane; 2],
+    triple: &FinderTriple,
+    window_center: Vector2<f64>,
+) -> Option<MarkerGrid> {
+    let ex = triple.right - triple.corner;
+    let ey = triple.bottom - triple.corner;
+    let candidates = [
+        (0, planes[0]),
+        (0, planes[0].flipped()),
+        (1, planes[1]),
+        (1, planes[1].flipped()),
+    ];
+    let error =
+        |p: &PhasePlane, axis: &Vector2<f64>| wrap_to_pi(p.angle() - axis.y.atan2(axis.x)).abs();
+    let (ix, plane_x) = *candidates
+        .iter()
+        .min_by(|a, b| error(&a.1, &ex).total_cmp(&error(&b.1, &ex)))?;
+    let (_, plane_y) = *candidates
+        .iter()
+        .filter(|c| c.0 != ix)
+        .min_by(|a, b| error(&a.1, &ey).total_cmp(&error(&b.1, &ey)))?;
+    if error(&plane_x, &ex) > MAX_AXIS_ERROR || error(&plane_y, &ey) > MAX_AXIS_ERROR {
+        return None;
+    }
+    let expected_period = 2.0 * triple.module_px;
+    for p in [&plane_x, &plane_y] {
+        if (p.pixel_period() / expected_period - 1.0).abs() > MAX_PERIOD_ERROR {
+            return None;
+        }
+    }
+    // Gradients as rows: M·d = phase change over the displacement d.
+    let m = Matrix2::new(plane_x.a, plane_x.b, plane_y.a, plane_y.b);
+    let inverse = m.try_inverse()?;
+    // Finder legs in periods: (L, 0) and (0, L) with L = (W − 7)/2 a whole number.
+    let leg_x = m * ex / TAU;
+    let leg_y = m * ey / TAU;
+    let legs = 0.5 * (leg_x.x + leg_y.y);
+    let whole = legs.round();
+    if whole < 5.0
+        || [leg_x.x - whole, leg_y.y - whole, leg_x.y, leg_y.x]
+            .iter()
+            .any(|e| e.abs() > MAX_LEG_ERROR)
+    {
+        return None;
+    }
+    let half_periods = 7 + 2 * whole as usize;
+    // Centre cell (W − 1)/2 lies (W − 1)/4 periods from the corner dot (phase 0).
+    let center_phase = if (half_periods - 1) % 4 == 0 { 0.0 } else { PI };
+    let coarse = triple.center() - window_center;
+    let kx = ((plane_x.at(coarse.x, coarse.y) - center_phase) / TAU).round();
+    let ky = ((plane_y.at(coarse.x, coarse.y) - center_phase) / TAU).round();
+    let offset = inverse
+        * Vector2::new(
+            TAU * kx + center_phase - plane_x.c,
+            TAU * ky + center_phase - plane_y.c,
+        );
+    Some(MarkerGrid {
+        plane_x,
+        plane_y,
+        x_from_plane: ix,
+        center_phase,
+        period_shift: (kx, ky),
+        half_periods,
+        dots: DotGrid {
+            center: window_center + offset,
+            step_x: inverse * Vector2::new(TAU, 0.0),
+            step_y: inverse * Vector2::new(0.0, TAU),
+            size: half_periods.div_ceil(2),
+        },
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grey_image::Polarity;
+
+    /// Planes of a grid rotated by `alpha`, period 10 px, with a node at window offset `node`,
+    /// reported like the engine (directions in [0, π)).
+    fn planes(alpha: f64, node: Vector2<f64>) -> [PhasePlane; 2] {
+        let k = TAU / 10.0;
+        let (s, c) = alpha.sin_cos();
+        let px = PhasePlane {
+            a: k * c,
+            b: k * s,
+            c: -k * (c * node.x + s * node.y),
+        };
+        let py = PhasePlane {
+            a: -k * s,
+            b: k * c,
+            c: -k * (-s * node.x + c * node.y),
+        };
+        [px.flipped(), py.flipped()]
+    }
+
+    fn triple(alpha: f64, center: Vector2<f64>, legs_px: f64) -> FinderTriple {
+        let (s, c) = alpha.sin_cos();
+        let ux = Vector2::new(c, s) * legs_px / 2.0;
+        let uy = Vector2::new(-s, c) * legs_px / 2.0;
+        FinderTriple {
+            corner: center - ux - uy + Vector2::new(1.5, -2.0),
+            right: center + ux - uy,
+            bottom: center - ux + uy,
+            module_px: 5.0,
+            polarity: Polarity::BrightDots,
+            misfit: 0.0,
+        }
+    }
+
+    #[test]
+    fn resolves_quadrant_and_period_shift() {
+        // Centre dot three periods away from the window centre; W = 33 (legs 13 periods).
+        let alpha = 2.5;
+        let node = Vector2::new(23.0, -12.0);
+        let window_center = Vector2::new(500.0, 400.0);
+        let center = window_center + node;
+        let t = triple(alpha, center, 130.0);
+        let g = locate(&planes(alpha, node), &t, window_center).unwrap();
+        assert_eq!(g.half_periods, 33);
+        assert!(
+            (g.dots.center - center).norm() < 1e-9,
+            "{:?}",
+            g.dots.center
+        );
+        assert!((g.alpha(false) - alpha).abs() < 1e-12);
+        assert!((g.dots.step_x - Vector2::new(alpha.cos(), alpha.sin()) * 10.0).norm() < 1e-9);
+        // A grid of the wrong period is refused.
+        let mut wrong = t;
+        wrong.module_px = 8.0;
+        assert!(locate(&planes(alpha, node), &wrong, window_center).is_none());
+    }
+
+    #[test]
+    fn centre_between_dots_for_w_3_mod_4() {
+        // W = 39: legs of 16 periods, centre half a period off the nodes along both axes.
+        let alpha = -0.7;
+        let node = Vector2::new(4.0, 2.0);
+        let window_center = Vector2::new(300.0, 200.0);
+        let (s, c) = f64::sin_cos(alpha);
+        let center = window_center + node + (Vector2::new(c, s) + Vector2::new(-s, c)) * 5.0;
+        let t = triple(alpha, center, 160.0);
+        let g = locate(&planes(alpha, node), &t, window_center).unwrap();
+        assert_eq!(g.half_periods, 39);
+        assert!((g.dots.center - center).norm() < 1e-9);
+    }
+}

@@ -1,0 +1,232 @@
+//! Reading the marker ID from the measured dot grid (METHOD.md §1.4, §5.2.3 step 6, redone).
+//!
+//! The original samples a Bresenham line between two finders and binarises it with Otsu, which
+//! throws on short lines (§9.7, Image134). Here the fine phase planes give the exact image
+//! position of every dot, so each ID dot is sampled where it must be and compared with a
+//! threshold halfway between the dots of the next row (always present) and the empty cells in
+//! between (always background). The left dot column, which carries no ID, is read the same way:
+//! in a marker seen from the front it is complete; a mirrored marker (seen from its back, e.g.
+//! a flipped image) shows its ID there instead.
+
+use crate::grey_image::{GreyImage, Polarity};
+use nalgebra::Vector2;
+
+/// Dot grid of one marker in the image: where dot `(row r, col c)` of the `n × n` marker is.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct DotGrid {
+    /// Image position `(col, row)` of the centre dot, pixels.
+    pub center: Vector2<f64>,
+    /// Image displacement of one period along the pattern x axis, pixels.
+    pub step_x: Vector2<f64>,
+    /// Image displacement of one period along the pattern y axis, pixels.
+    pub step_y: Vector2<f64>,
+    /// Dots per side `n` (odd).
+    pub size: usize,
+}
+
+impl DotGrid {
+    /// Image position of the point at dot coordinates `(r, c)` (fractional allowed).
+    fn at(&self, r: f64, c: f64) -> Vector2<f64> {
+        let h = (self.size - 1) as f64 / 2.0;
+        self.center + self.step_x * (c - h) + self.step_y * (r - h)
+    }
+}
+
+/// The dots of one marker edge (the ID row or the left column) classified as present/absent.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct EdgeBits {
+    /// Bit `k` = dot absent, `k = 0` next to the far finder.
+    pub bits: Vec<bool>,
+    /// Smallest distance of a dot's level to the threshold, in units of half the contrast
+    /// (1 = perfectly clean, 0 = undecidable), clamped to `[0, 1]`.
+    pub margin: f64,
+}
+
+impl EdgeBits {
+    /// The bits as an integer (bit k = 1 when the dot is absent).
+    pub fn value(&self) -> u64 {
+        self.bits
+            .iter()
+            .enumerate()
+            .filter(|(_, &b)| b)
+            .map(|(k, _)| 1u64 << k)
+            .sum()
+    }
+    fn any(&self) -> bool {
+        self.bits.iter().any(|&b| b)
+    }
+}
+
+/// Result of reading a marker's ID.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct IdReading {
+    /// Decoded ID.
+    pub id: u64,
+    /// True when the ID was found in the left column: the marker is mirrored.
+    pub mirrored: bool,
+    /// Confidence in `[0, 1]`: the smallest bit margin of both edges; 0 when both edges miss
+    /// dots (inconsistent marker).
+    pub confidence: f64,
+}
+
+/// Reads the ID of the marker whose dots are at `grid`, or `None` when a needed sample lies
+/// outside the image or the dots do not stand out of the background.
+pub(crate) fn read_id(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> Option<IdReading> {
+    let n = grid.size;
+    if n < 9 {
+        return None;
+    }
+    // Top row: ID dots (0, n−5−k); present references (1, c); background between them.
+    let top = read_edge(image, polarity, grid, false)?;
+    let left = read_edge(image, polarity, grid, true)?;
+    let confidence = top.margin.min(left.margin);
+    Some(match (top.any(), left.any()) {
+        (false, true) => IdReading {
+            id: left.value(),
+            mirrored: true,
+            confidence,
+        },
+        (true, true) => IdReading {
+            id: top.value(),
+            mirrored: false,
+            confidence: 0.0,
+        },
+        _ => IdReading {
+            id: top.value(),
+            mirrored: false,
+            confidence,
+        },
+    })
+}
+
+/// Reads the `n − 8` ID positions of the top row (or, `transposed`, of the left column).
+fn read_edge(
+    image: &GreyImage,
+    polarity: Polarity,
+    grid: &DotGrid,
+    transposed: bool,
+) -> Option<EdgeBits> {
+    let n = grid.size;
+    let point = |r: f64, c: f64| {
+        if transposed {
+            grid.at(c, r)
+        } else {
+            grid.at(r, c)
+        }
+    };
+    let sample = |p: Vector2<f64>| dot_level(image, polarity, p, grid);
+    let cols = 4..=n - 5;
+    let mut present = Vec::with_capacity(n);
+    let mut background = Vec::with_capacity(2 * n);
+    let mut levels = Vec::with_capacity(n);
+    for c in cols.clone() {
+        let c = c as f64;
+        levels.push(sample(point(0.0, c))?);
+        present.push(sample(point(1.0, c))?);
+        background.push(sample(point(0.5, c - 0.5))?);
+        background.push(sample(point(0.5, c + 0.5))?);
+    }
+    let hi = median(&mut present);
+    let lo = median(&mut background);
+    let half_contrast = 0.5 * (hi - lo);
+    if half_contrast.is_nan() || half_contrast <= 0.0 {
+        return None;
+    }
+    let threshold = 0.5 * (hi + lo);
+    // levels[i] is dot column 4 + i; bit k is dot column n − 5 − k.
+    let bits: Vec<bool> = levels.iter().rev().map(|&v| v < threshold).collect();
+    let margin = levels
+        .iter()
+        .map(|&v| ((v - threshold).abs() / half_contrast).min(1.0))
+        .fold(1.0f64, f64::min);
+    Some(EdgeBits { bits, margin })
+}
+
+/// Mean material level (1 = dot) around image point `p`: five bilinear samples, the centre and
+/// ±0.15 period along both grid axes. `None` outside the image.
+fn dot_level(
+    image: &GreyImage,
+    polarity: Polarity,
+    p: Vector2<f64>,
+    grid: &DotGrid,
+) -> Option<f64> {
+    let (dx, dy) = (grid.step_x * 0.15, grid.step_y * 0.15);
+    let mut sum = 0.0;
+    for q in [p, p + dx, p - dx, p + dy, p - dy] {
+        sum += bilinear(image, q.x, q.y)?;
+    }
+    let v = sum / 5.0;
+    Some(match polarity {
+        Polarity::BrightDots => v,
+        Polarity::DarkDots => 1.0 - v,
+    })
+}
+
+/// Bilinear interpolation at `(x, y)` = `(col, row)`; `None` outside the image.
+fn bilinear(image: &GreyImage, x: f64, y: f64) -> Option<f64> {
+    let (w, h) = (image.width(), image.height());
+    if !(x >= 0.0 && y >= 0.0 && x <= (w - 1) as f64 && y <= (h - 1) as f64) {
+        return None;
+    }
+    let (c0, r0) = (x.floor() as usize, y.floor() as usize);
+    let (c1, r1) = ((c0 + 1).min(w - 1), (r0 + 1).min(h - 1));
+    let (fx, fy) = (x - c0 as f64, y - r0 as f64);
+    let px = image.pixels();
+    let v = |c: usize, r: usize| px[r * w + c] as f64;
+    Some(
+        (1.0 - fy) * ((1.0 - fx) * v(c0, r0) + fx * v(c1, r0))
+            + fy * ((1.0 - fx) * v(c0, r1) + fx * v(c1, r1)),
+    )
+}
+
+fn median(values: &mut [f64]) -> f64 {
+    let n = values.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    values.sort_by(f64::total_cmp);
+    if n % 2 == 1 {
+        values[n / 2]
+    } else {
+        0.5 * (values[n / 2 - 1] + values[n / 2])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::layout::HpCodeLayout;
+    use crate::pose::Pose;
+    use crate::render::{render, RenderOptions};
+
+    fn grid_for(pose: &Pose, period: f64, size: usize, image: &GreyImage) -> DotGrid {
+        let (cx, cy) = image.center();
+        let center = Vector2::new(cx as f64, cy as f64) + pose.origin_in_image();
+        let (s, c) = pose.alpha.sin_cos();
+        let k = period / pose.pixel_size;
+        DotGrid {
+            center,
+            step_x: Vector2::new(c, s) * k,
+            step_y: Vector2::new(-s, c) * k,
+            size,
+        }
+    }
+
+    #[test]
+    fn reads_ids_of_both_polarities() {
+        for id in [0u64, 1, 0b1_0110_0101, 511] {
+            let layout = HpCodeLayout::from_half_periods(10.0, 33)
+                .unwrap()
+                .with_id(id)
+                .unwrap();
+            let pose = Pose::planar(3.0, -2.0, 0.4, 1.0);
+            let image = render(&layout, &pose, &RenderOptions::new(260, 240)).unwrap();
+            let grid = grid_for(&pose, 10.0, 17, &image);
+            let r = read_id(&image, Polarity::BrightDots, &grid).unwrap();
+            assert_eq!((r.id, r.mirrored), (id, false));
+            assert!(r.confidence > 0.5, "{r:?}");
+            let r = read_id(&image.inverted(), Polarity::DarkDots, &grid).unwrap();
+            assert_eq!(r.id, id);
+        }
+    }
+}

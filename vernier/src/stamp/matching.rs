@@ -1,0 +1,421 @@
+//! Identity, orientation and period shift of a marker by matching its thumbnail against the
+//! bitmaps (METHOD.md §5.4.2–5.4.3, redesigned).
+//!
+//! A hypothesis maps thumbnail cells `i` (indices along the measured phases) to bitmap cells
+//! `j` (relative to the bitmap's central dot) by `j = j0 + R·i`, `R` one of the 8 dihedral
+//! transforms (4 rotations, optionally mirrored) and `j0` an even offset (dots land on dots).
+//! Its score is the Pearson correlation between the thumbnail's grey levels and the bitmap's
+//! 0/1 cells over every thumbnail cell seen in the image (cells beyond the bitmap count as
+//! background, 0). The best hypothesis over all bitmaps gives the marker's identity and where
+//! its origin lies in the thumbnail (`i* = −R⁻¹·j0`), from which the pose follows without the
+//! original's re-orientation table and its period-shift sign slip (METHOD.md §9.12).
+
+use super::thumbnail::Thumbnail;
+use crate::layout::BitmapLayout;
+
+/// One of the 8 dihedral transforms from thumbnail cell axes to bitmap cell axes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Orientation {
+    /// Quarter turns `r ∈ 0..4` of the rotation part.
+    pub quarter_turns: u8,
+    /// Whether a mirror (`i2 → −i2`) is applied before the rotation.
+    pub mirrored: bool,
+}
+
+impl Orientation {
+    /// The 8 transforms, proper rotations first.
+    pub(crate) const ALL: [Orientation; 8] = [
+        Orientation::new(0, false),
+        Orientation::new(1, false),
+        Orientation::new(2, false),
+        Orientation::new(3, false),
+        Orientation::new(0, true),
+        Orientation::new(1, true),
+        Orientation::new(2, true),
+        Orientation::new(3, true),
+    ];
+
+    const fn new(quarter_turns: u8, mirrored: bool) -> Self {
+        Orientation {
+            quarter_turns,
+            mirrored,
+        }
+    }
+
+    /// Integer matrix `R` (row-major) with `j = j0 + R·i`.
+    pub(crate) fn matrix(&self) -> [[i64; 2]; 2] {
+        let (c, s) = match self.quarter_turns % 4 {
+            0 => (1, 0),
+            1 => (0, 1),
+            2 => (-1, 0),
+            _ => (0, -1),
+        };
+        let m = if self.mirrored { -1 } else { 1 };
+        // Rot(r)·diag(1, m).
+        [[c, -s * m], [s, c * m]]
+    }
+
+    /// `R⁻¹·v` (R is orthogonal: the inverse is the transpose).
+    fn inverse_apply(&self, v: [i64; 2]) -> [i64; 2] {
+        let m = self.matrix();
+        [
+            m[0][0] * v[0] + m[1][0] * v[1],
+            m[0][1] * v[0] + m[1][1] * v[1],
+        ]
+    }
+}
+
+/// A bitmap prepared for matching: its set cells relative to the central cell.
+#[derive(Clone, Debug)]
+pub(crate) struct Template {
+    /// `(jx, jy)`: column and row offsets of every set cell from the central cell.
+    cells: Vec<[i64; 2]>,
+    /// Half extents `((Wb − 1)/2, (Hb − 1)/2)`, cells.
+    pub half: [i64; 2],
+    bitmap: BitmapLayout,
+}
+
+impl Template {
+    pub(crate) fn new(bitmap: &BitmapLayout) -> Self {
+        let (rows, cols) = (bitmap.cell_rows(), bitmap.cell_cols());
+        let half = [(cols as i64 - 1) / 2, (rows as i64 - 1) / 2];
+        let mut cells = Vec::new();
+        for r in 0..rows {
+            for c in 0..cols {
+                if bitmap.cell(r, c) {
+                    cells.push([c as i64 - half[0], r as i64 - half[1]]);
+                }
+            }
+        }
+        Template {
+            cells,
+            half,
+            bitmap: bitmap.clone(),
+        }
+    }
+
+    /// Whether the cell at offset `j` from the central cell is set (false outside).
+    fn is_set(&self, j: [i64; 2]) -> bool {
+        let (c, r) = (j[0] + self.half[0], j[1] + self.half[1]);
+        c >= 0 && r >= 0 && self.bitmap.cell(r as usize, c as usize)
+    }
+}
+
+/// The winning hypothesis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Match {
+    /// Index of the bitmap.
+    pub bitmap: usize,
+    pub orientation: Orientation,
+    /// Thumbnail cell `(i1, i2)` of the bitmap's central dot (both even).
+    pub origin_cell: [i64; 2],
+    /// Pearson correlation of the winner, `[−1, 1]`.
+    pub correlation: f64,
+    /// Cell vote of the winner against its rivals, `[−1, 1]`: on the thumbnail cells where
+    /// the winner and a rival predict different values, `(agreeing − disagreeing)/compared`
+    /// cells, the smallest over the rivals (the best hypothesis at another placement, and
+    /// every other bitmap at the winner's placement). 1 without rivals; 0 when a rival predicts
+    /// the same cells.
+    pub vote: f64,
+}
+
+/// A hypothesis: bitmap, orientation and thumbnail cell of its central dot.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Hypothesis {
+    bitmap: usize,
+    orientation: Orientation,
+    origin_cell: [i64; 2],
+}
+
+/// Which hypotheses to try.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct SearchRange {
+    /// Thumbnail cells where the bitmap's central dot may lie: `[min, max]` per axis
+    /// (inclusive; only even cells are tried).
+    pub origin: [[i64; 2]; 2],
+    /// Whether mirrored views are possible. Mirrored hypotheses are always tried (so that a
+    /// mirrored marker is recognised rather than mis-read), but when they are not possible
+    /// they are no rivals in [`Match::vote`].
+    pub mirrored_allowed: bool,
+    /// Minimum fraction of a bitmap's set cells that must fall on seen thumbnail cells.
+    pub min_overlap: f64,
+}
+
+/// Best hypothesis over all `templates`, or `None` when the thumbnail has no contrast or no
+/// hypothesis overlaps it enough.
+pub(crate) fn best_match(
+    thumb: &Thumbnail,
+    templates: &[Template],
+    range: &SearchRange,
+) -> Option<Match> {
+    // Centred thumbnail, padded by the largest template radius so that every lookup is in
+    // bounds; each entry holds (value − mean, 1) on seen cells and (0, 0) elsewhere.
+    let seen: Vec<f64> = thumb.values.iter().flatten().map(|&v| v as f64).collect();
+    let n = seen.len();
+    if n < 16 {
+        return None;
+    }
+    let mean = seen.iter().sum::<f64>() / n as f64;
+    let var = seen.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n as f64;
+    // NaN-safe: a NaN variance is rejected too.
+    if var.is_nan() || var <= 1e-12 {
+        return None;
+    }
+    let pad = templates.iter().map(|t| t.half[0].max(t.half[1])).max()? + 1;
+    let pw = thumb.len[0] as i64 + 2 * pad;
+    let ph = thumb.len[1] as i64 + 2 * pad;
+    let mut grid = vec![[0.0f32; 2]; (pw * ph) as usize];
+    for r in 0..thumb.len[1] {
+        for c in 0..thumb.len[0] {
+            if let Some(v) = thumb.values[r * thumb.len[0] + c] {
+                let k = (r as i64 + pad) * pw + c as i64 + pad;
+                grid[k as usize] = [(v as f64 - mean) as f32, 1.0];
+            }
+        }
+    }
+    // Padded index of thumbnail cell (i1, i2).
+    let index = |i: [i64; 2]| (i[1] - thumb.lo[1] + pad) * pw + (i[0] - thumb.lo[0] + pad);
+    let norm = (n as f64 * var).sqrt();
+    // Best hypothesis, and best one at another placement (orientation, origin).
+    let mut best: Option<(Hypothesis, f64)> = None;
+    let mut runner_up: Option<(Hypothesis, f64)> = None;
+    let even_up = |v: i64| v + v.rem_euclid(2);
+    let mut offsets: Vec<i64> = Vec::new();
+    for (bitmap, template) in templates.iter().enumerate() {
+        let total = template.cells.len();
+        if total == 0 {
+            continue;
+        }
+        for orientation in Orientation::ALL {
+            // Template cells in thumbnail axes, as padded-index offsets from the origin cell.
+            offsets.clear();
+            offsets.extend(template.cells.iter().map(|&j| {
+                let i = orientation.inverse_apply(j);
+                i[1] * pw + i[0]
+            }));
+            let reach = template.half[0].max(template.half[1]);
+            let mut o2 = even_up(range.origin[1][0]);
+            while o2 <= range.origin[1][1] {
+                let mut o1 = even_up(range.origin[0][0]);
+                while o1 <= range.origin[0][1] {
+                    let origin = [o1, o2];
+                    o1 += 2;
+                    // The whole template must stay inside the padded grid.
+                    let (c, r) = (origin[0] - thumb.lo[0], origin[1] - thumb.lo[1]);
+                    if c + pad < reach
+                        || r + pad < reach
+                        || c + reach >= thumb.len[0] as i64 + pad
+                        || r + reach >= thumb.len[1] as i64 + pad
+                    {
+                        continue;
+                    }
+                    let base = index(origin);
+                    let (mut s1, mut n1) = (0.0f32, 0.0f32);
+                    for &o in &offsets {
+                        let [v, seen] = grid[(base + o) as usize];
+                        s1 += v;
+                        n1 += seen;
+                    }
+                    let n1 = n1 as f64;
+                    if n1 < range.min_overlap * total as f64 || n1 >= n as f64 {
+                        continue;
+                    }
+                    // Pearson correlation with the 0/1 template over the seen cells.
+                    let p = n1 / n as f64;
+                    let r = s1 as f64 / (norm * (n as f64 * p * (1.0 - p)).sqrt());
+                    let h = Hypothesis {
+                        bitmap,
+                        orientation,
+                        origin_cell: origin,
+                    };
+                    // A mirrored reading must beat a proper one clearly: with a bitmap that is
+                    // its own mirror image both predict the same cells and tie up to rounding.
+                    let beats = |b: &(Hypothesis, f64)| {
+                        let margin = if orientation.mirrored && !b.0.orientation.mirrored {
+                            1e-6
+                        } else {
+                            0.0
+                        };
+                        r > b.1 + margin
+                    };
+                    let rival = range.mirrored_allowed || !orientation.mirrored;
+                    match best {
+                        None => best = Some((h, r)),
+                        Some((b, _)) if b.orientation == orientation && b.origin_cell == origin => {
+                            if best.as_ref().is_some_and(beats) {
+                                best = Some((h, r));
+                            }
+                        }
+                        Some(b) if beats(&b) => {
+                            if range.mirrored_allowed || !b.0.orientation.mirrored {
+                                runner_up = Some(b);
+                            }
+                            best = Some((h, r));
+                        }
+                        Some(_) => {
+                            if rival && runner_up.is_none_or(|(_, rr)| r > rr) {
+                                runner_up = Some((h, r));
+                            }
+                        }
+                    }
+                }
+                o2 += 2;
+            }
+        }
+    }
+    let (winner, correlation) = best?;
+    // Rivals: the best other placement, and the other bitmaps at the winner's placement.
+    let mut rivals: Vec<Hypothesis> = runner_up.map(|(h, _)| h).into_iter().collect();
+    rivals.extend(
+        (0..templates.len())
+            .filter(|&k| k != winner.bitmap)
+            .map(|bitmap| Hypothesis { bitmap, ..winner }),
+    );
+    let vote = cell_vote(thumb, templates, &winner, &rivals);
+    Some(Match {
+        bitmap: winner.bitmap,
+        orientation: winner.orientation,
+        origin_cell: winner.origin_cell,
+        correlation,
+        vote,
+    })
+}
+
+/// Whether hypothesis `h` predicts a set cell at thumbnail cell `i`.
+fn predicts_set(templates: &[Template], h: &Hypothesis, i: [i64; 2]) -> bool {
+    let m = h.orientation.matrix();
+    let d = [i[0] - h.origin_cell[0], i[1] - h.origin_cell[1]];
+    let j = [
+        m[0][0] * d[0] + m[0][1] * d[1],
+        m[1][0] * d[0] + m[1][1] * d[1],
+    ];
+    templates.get(h.bitmap).is_some_and(|t| t.is_set(j))
+}
+
+/// Cell-by-cell vote of `winner` against each rival (see [`Match::vote`]).
+fn cell_vote(
+    thumb: &Thumbnail,
+    templates: &[Template],
+    winner: &Hypothesis,
+    rivals: &[Hypothesis],
+) -> f64 {
+    let cells: Vec<(f32, [i64; 2])> = (0..thumb.len[1])
+        .flat_map(|r| {
+            (0..thumb.len[0]).filter_map(move |c| {
+                let v = thumb.values[r * thumb.len[0] + c]?;
+                Some((v, [c as i64 + thumb.lo[0], r as i64 + thumb.lo[1]]))
+            })
+        })
+        .collect();
+    // Grey level halfway between the winner's set and unset cells.
+    let (mut s1, mut n1, mut s0, mut n0) = (0.0f64, 0usize, 0.0f64, 0usize);
+    for &(v, i) in &cells {
+        if predicts_set(templates, winner, i) {
+            s1 += v as f64;
+            n1 += 1;
+        } else {
+            s0 += v as f64;
+            n0 += 1;
+        }
+    }
+    if n1 == 0 || n0 == 0 {
+        return 0.0;
+    }
+    let (m1, m0) = (s1 / n1 as f64, s0 / n0 as f64);
+    let mid = (m1 + m0) / 2.0;
+    let mut vote = 1.0f64;
+    for rival in rivals {
+        let (mut agree, mut compared) = (0usize, 0usize);
+        for &(v, i) in &cells {
+            let set = predicts_set(templates, winner, i);
+            if set != predicts_set(templates, rival, i) {
+                compared += 1;
+                if ((v as f64 > mid) == (m1 > m0)) == set {
+                    agree += 1;
+                }
+            }
+        }
+        let v = if compared == 0 {
+            0.0
+        } else {
+            (2.0 * agree as f64 - compared as f64) / compared as f64
+        };
+        vote = vote.min(v);
+    }
+    vote
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn orientation_matrices_form_the_dihedral_group() {
+        let mut seen = Vec::new();
+        for o in Orientation::ALL {
+            let m = o.matrix();
+            let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+            assert_eq!(det, if o.mirrored { -1 } else { 1 });
+            let back = o.inverse_apply([m[0][0] * 2 + m[0][1] * 5, m[1][0] * 2 + m[1][1] * 5]);
+            assert_eq!(back, [2, 5]);
+            assert!(!seen.contains(&m));
+            seen.push(m);
+        }
+    }
+
+    #[test]
+    fn finds_rotation_and_shift_of_an_asymmetric_bitmap() {
+        // 9×9 bitmap: dots on even cells plus an L-shaped glyph.
+        let mut rows = vec![vec![0u8; 9]; 9];
+        for r in (0..9).step_by(2) {
+            for c in (0..9).step_by(2) {
+                rows[r][c] = 1;
+            }
+        }
+        rows[1][..5].fill(1);
+        rows[3][1] = 1;
+        let bitmap = BitmapLayout::from_rows(1.0, &rows).unwrap();
+        let template = Template::new(&bitmap);
+        let truth = Orientation::new(3, false);
+        let origin = [2i64, -2];
+        // Thumbnail 17×17 cells from −8: cell i sees bitmap cell j = R·(i − origin).
+        let (lo, len) = ([-8i64, -8], [17usize, 17]);
+        let m = truth.matrix();
+        let mut values = Vec::new();
+        for i2 in lo[1]..lo[1] + 17 {
+            for i1 in lo[0]..lo[0] + 17 {
+                let d = [i1 - origin[0], i2 - origin[1]];
+                let j = [
+                    m[0][0] * d[0] + m[0][1] * d[1],
+                    m[1][0] * d[0] + m[1][1] * d[1],
+                ];
+                let (c, r) = (j[0] + 4, j[1] + 4);
+                let on = (0..9).contains(&c)
+                    && (0..9).contains(&r)
+                    && bitmap.cell(r as usize, c as usize);
+                values.push(Some(if on { 0.9 } else { 0.1 }));
+            }
+        }
+        let thumb = Thumbnail { lo, len, values };
+        let template_again =
+            |rows: &Vec<Vec<u8>>| Template::new(&BitmapLayout::from_rows(1.0, rows).unwrap());
+        let range = SearchRange {
+            origin: [[-4, 4], [-4, 4]],
+            mirrored_allowed: true,
+            min_overlap: 0.9,
+        };
+        let found = best_match(&thumb, &[template], &range).unwrap();
+        assert_eq!(found.orientation, truth);
+        assert_eq!(found.origin_cell, origin);
+        assert!((found.correlation - 1.0).abs() < 1e-5, "{found:?}");
+        assert_eq!(found.vote, 1.0, "{found:?}");
+        // A second bitmap without the glyph's corner cell: still the first, by a clear vote.
+        let mut other_rows = rows.clone();
+        other_rows[3][1] = 0;
+        other_rows[1][0] = 0;
+        let other = Template::new(&BitmapLayout::from_rows(1.0, &other_rows).unwrap());
+        let found = best_match(&thumb, &[other, template_again(&rows)], &range).unwrap();
+        assert_eq!(found.bitmap, 1);
+        assert_eq!(found.vote, 1.0, "{found:?}");
+    }
+}

@@ -1,0 +1,473 @@
+//! HP code detection (issue 3 acceptance): synthetic scenes with 1–6 markers at random poses,
+//! IDs and scales; the original's real images (Image96–105, HPCodeImage_20um) against its
+//! reference results; exact image rotations and flips; the unified detector and duplicates.
+
+mod common;
+
+use nalgebra::{Matrix2, Vector2};
+use rand::{rngs::SmallRng, Rng, SeedableRng};
+use std::f64::consts::{FRAC_PI_2, PI};
+use vernier::detector::{DetectorSettings, MarkerKind};
+use vernier::hpcode::{HpCodeDetector, HpCodeMarker, HpCodeParams};
+use vernier::layout::{HpCodeLayout, Layout};
+use vernier::phase::wrap_to_pi;
+use vernier::render::{render_scene, RenderOptions};
+use vernier::{Detector, GreyImage, Polarity, Pose};
+
+/// Physical period of every synthetic marker, µm.
+const PERIOD: f64 = 10.0;
+
+struct Truth {
+    id: u64,
+    pose: Pose,
+    origin_px: Vector2<f64>,
+}
+
+/// `count` markers `half_periods` cells wide at random poses, IDs and scales (period 7–11 px),
+/// placed so that no marker enters another's analysis window.
+fn random_scene(
+    rng: &mut SmallRng,
+    count: usize,
+    half_periods: usize,
+    size: (usize, usize),
+) -> (GreyImage, Vec<Truth>) {
+    let bits = (half_periods - 15) / 2;
+    let center = Vector2::new((size.0 / 2) as f64, (size.1 / 2) as f64);
+    let mut placed: Vec<(Truth, f64)> = Vec::new();
+    let mut attempts = 0;
+    while placed.len() < count {
+        attempts += 1;
+        assert!(attempts < 100_000, "cannot place {count} markers");
+        let period_px: f64 = rng.random_range(7.0..11.0);
+        let width_px = half_periods as f64 * period_px / 2.0;
+        let half_diag = width_px / std::f64::consts::SQRT_2 + 6.0;
+        let pos = Vector2::new(
+            rng.random_range(half_diag..size.0 as f64 - half_diag),
+            rng.random_range(half_diag..size.1 as f64 - half_diag),
+        );
+        if placed
+            .iter()
+            .any(|(t, r)| (t.origin_px - pos).norm() < r + half_diag)
+        {
+            continue;
+        }
+        let pose =
+            Pose::from_origin_in_image(pos - center, rng.random_range(-PI..PI), PERIOD / period_px);
+        let truth = Truth {
+            id: rng.random_range(0..1u64 << bits),
+            pose,
+            origin_px: pos,
+        };
+        placed.push((truth, half_diag));
+    }
+    let layouts: Vec<HpCodeLayout> = placed
+        .iter()
+        .map(|(t, _)| {
+            HpCodeLayout::from_half_periods(PERIOD, half_periods)
+                .unwrap()
+                .with_id(t.id)
+                .unwrap()
+        })
+        .collect();
+    let items: Vec<(&dyn Layout, Pose)> = layouts
+        .iter()
+        .zip(&placed)
+        .map(|(l, (t, _))| (l as &dyn Layout, t.pose))
+        .collect();
+    let mut opts = RenderOptions::new(size.0, size.1);
+    opts.blur_sigma = 0.5;
+    let image = render_scene(&items, &opts).unwrap();
+    (image, placed.into_iter().map(|(t, _)| t).collect())
+}
+
+#[test]
+fn synthetic_scenes_every_marker_found_with_its_id_and_pose() {
+    let mut rng = SmallRng::seed_from_u64(3);
+    let (mut worst_px, mut worst_rad, mut markers) = (0.0f64, 0.0f64, 0);
+    let mut worst_scale = 0.0f64;
+    for count in 1..=6 {
+        let half_periods = if count % 2 == 0 { 33 } else { 37 };
+        let size = match count {
+            1 | 2 => (640, 512),
+            3 | 4 => (1024, 768),
+            _ => (1280, 1024),
+        };
+        let (image, truths) = random_scene(&mut rng, count, half_periods, size);
+        let mut detector = HpCodeDetector::new(HpCodeParams::new(PERIOD, half_periods)).unwrap();
+        let found = detector.detect(&image).unwrap();
+        assert_eq!(found.len(), truths.len(), "scene of {count}: {found:#?}");
+        for t in &truths {
+            let m = found
+                .iter()
+                .find(|m| (m.origin_px - t.origin_px).norm() < 2.0)
+                .unwrap_or_else(|| panic!("scene of {count}: marker {} missing", t.id));
+            assert_eq!(m.id, t.id, "scene of {count}");
+            assert_eq!(m.half_periods, half_periods);
+            assert_eq!(m.polarity, Polarity::BrightDots);
+            assert!(!m.mirrored);
+            assert!(m.id_confidence > 0.5, "{}", m.id_confidence);
+            let err_px = (m.origin_px - t.origin_px).norm();
+            let err_rad = wrap_to_pi(m.pose.alpha - t.pose.alpha).abs();
+            // The pose itself (pattern units) agrees as well as the pixel position.
+            let err_pose =
+                Vector2::new(m.pose.x - t.pose.x, m.pose.y - t.pose.y).norm() / t.pose.pixel_size;
+            worst_scale = worst_scale.max((m.pose.pixel_size / t.pose.pixel_size - 1.0).abs());
+            assert!(
+                (m.pose.pixel_size / t.pose.pixel_size - 1.0).abs() < 1e-5,
+                "pixel size {} vs {}",
+                m.pose.pixel_size,
+                t.pose.pixel_size
+            );
+            worst_px = worst_px.max(err_px).max(err_pose);
+            worst_rad = worst_rad.max(err_rad);
+            markers += 1;
+        }
+    }
+    println!(
+        "{markers} markers: worst {worst_px:.2e} px, {worst_rad:.2e} rad, pixel size {worst_scale:.1e} (relative)"
+    );
+    assert!(worst_px < 2e-3, "position error {worst_px:.2e} px");
+    assert!(worst_rad < 1e-5, "angle error {worst_rad:.2e} rad");
+}
+
+#[test]
+fn duplicate_ids_are_all_reported_and_flagged() {
+    let layout = HpCodeLayout::from_half_periods(PERIOD, 33)
+        .unwrap()
+        .with_id(5)
+        .unwrap();
+    let poses = [
+        Pose::from_origin_in_image(Vector2::new(-160.0, 10.0), 0.3, 1.1),
+        Pose::from_origin_in_image(Vector2::new(170.0, -20.0), -2.0, 1.2),
+    ];
+    let items: Vec<(&dyn Layout, Pose)> =
+        poses.iter().map(|p| (&layout as &dyn Layout, *p)).collect();
+    let mut opts = RenderOptions::new(720, 400);
+    opts.blur_sigma = 0.5;
+    let image = render_scene(&items, &opts).unwrap();
+    let settings = DetectorSettings {
+        pattern_type: MarkerKind::HpCode,
+        period: Some(PERIOD),
+        code_size: Some(33),
+        ..Default::default()
+    };
+    let mut detector = Detector::new(settings.to_config().unwrap()).unwrap();
+    let found = detector.detect(&image).unwrap();
+    assert_eq!(found.len(), 2);
+    assert!(found.iter().all(|m| m.id == 5 && m.duplicate_id));
+    assert!(found.iter().all(|m| m.decode_confidence.unwrap() > 0.5));
+}
+
+#[test]
+fn settings_and_errors() {
+    // Code size from an HPCodePattern file; missing code size is a clear error.
+    let dir = std::env::temp_dir().join(format!("vernier-hpcode-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("hp.json");
+    std::fs::write(
+        &file,
+        r#"{"HPCodePattern": {"period": 15.5, "size": 19, "unit": "um"}}"#,
+    )
+    .unwrap();
+    let from_file = DetectorSettings {
+        pattern_file: Some(file),
+        ..Default::default()
+    };
+    match from_file.to_config().unwrap() {
+        vernier::DetectorConfig::HpCode(p) => {
+            assert_eq!((p.period, p.half_periods), (15.5, 37));
+        }
+        other => panic!("{other:?}"),
+    }
+    let missing = DetectorSettings {
+        pattern_type: MarkerKind::HpCode,
+        period: Some(15.5),
+        ..Default::default()
+    };
+    let e = missing.to_config().unwrap_err().to_string();
+    assert!(e.contains("code_size"), "{e}");
+    for (w, window) in [(35, None), (33, Some(101)), (33, Some(8))] {
+        let mut p = HpCodeParams::new(15.5, w);
+        p.window_size = window;
+        assert!(HpCodeDetector::new(p).is_err());
+    }
+    // Blank and tiny images: no marker, no error.
+    let mut d = HpCodeDetector::new(HpCodeParams::new(15.5, 33)).unwrap();
+    let blank = GreyImage::new(300, 200, vec![0.5; 300 * 200]).unwrap();
+    assert!(d.detect(&blank).unwrap().is_empty());
+    let tiny = GreyImage::new(3, 2, vec![0.0; 6]).unwrap();
+    assert!(d.detect(&tiny).unwrap().is_empty());
+}
+
+/// One row of `Image96-105_reference.csv`: (x, y, alpha, pixelSize) of markers 0 and 1.
+fn reference_rows() -> Vec<(u32, [[f64; 4]; 2])> {
+    let path = common::data_dir().join("hpcode/Image96-105_reference.csv");
+    let text = std::fs::read_to_string(&path).unwrap();
+    text.lines()
+        .skip(1)
+        .filter(|l| !l.trim().is_empty())
+        .map(|line| {
+            let f: Vec<&str> = line.split(';').collect();
+            let num = |i: usize| f[i].parse::<f64>().unwrap();
+            (
+                f[0].parse().unwrap(),
+                [
+                    [num(2), num(3), num(4), num(5)],
+                    [num(7), num(8), num(9), num(10)],
+                ],
+            )
+        })
+        .collect()
+}
+
+fn open_hp(name: &str) -> GreyImage {
+    GreyImage::open(common::data_dir().join("hpcode").join(name)).unwrap()
+}
+
+fn by_id(markers: &[HpCodeMarker], id: u64) -> &HpCodeMarker {
+    let matching: Vec<_> = markers.iter().filter(|m| m.id == id).collect();
+    assert_eq!(matching.len(), 1, "id {id}: {markers:#?}");
+    matching[0]
+}
+
+#[test]
+fn real_images_96_to_105_match_the_original() {
+    let rows = reference_rows();
+    assert_eq!(rows.len(), 10);
+    // The original's method (band-pass planes, Hann window of 512 px on the truncated centre):
+    // reproduces its numbers. The default method refines the planes and keeps the window
+    // inside the marker: a different (more stable) estimate, see the report below.
+    let mut original = HpCodeDetector::new(HpCodeParams::original(15.5, 33, 512)).unwrap();
+    let mut default = HpCodeDetector::new(HpCodeParams::new(15.5, 33)).unwrap();
+    let (mut worst_xy, mut worst_alpha, mut worst_ps) = (0.0f64, 0.0f64, 0.0f64);
+    let (mut dev_xy, mut dev_alpha, mut dev_ps) = (0.0f64, 0.0f64, 0.0f64);
+    for (number, reference) in rows {
+        let image = open_hp(&format!("Image{number}.png"));
+        let found = original.detect(&image).unwrap();
+        assert_eq!(found.len(), 2, "Image{number}");
+        let refined = default.detect(&image).unwrap();
+        assert_eq!(refined.len(), 2, "Image{number}");
+        for (id, r) in reference.iter().enumerate() {
+            let m = by_id(&found, id as u64);
+            assert_eq!(m.half_periods, 33);
+            let p = m.pose;
+            worst_xy = worst_xy.max((p.x - r[0]).abs()).max((p.y - r[1]).abs());
+            worst_alpha = worst_alpha.max((p.alpha - r[2]).abs());
+            worst_ps = worst_ps.max((p.pixel_size - r[3]).abs());
+            let q = by_id(&refined, id as u64).pose;
+            dev_xy = dev_xy.max((q.x - r[0]).abs()).max((q.y - r[1]).abs());
+            dev_alpha = dev_alpha.max((q.alpha - r[2]).abs());
+            dev_ps = dev_ps.max((q.pixel_size - r[3]).abs());
+        }
+    }
+    println!(
+        "original method vs reference: {worst_xy:.4} µm, {worst_alpha:.2e} rad, pixel size {worst_ps:.1e}"
+    );
+    println!(
+        "default method vs reference: {dev_xy:.3} µm, {dev_alpha:.2e} rad, pixel size {dev_ps:.1e}"
+    );
+    // The reference is printed with 6 significant digits (±5e-6 rad, ±5e-6 px size).
+    assert!(worst_xy < 0.01, "{worst_xy} µm");
+    assert!(worst_alpha < 2e-5, "{worst_alpha} rad");
+    assert!(worst_ps < 1e-4, "{worst_ps}");
+    // Refined planes differ from the original's band-pass planes on these real images by up to
+    // ~1 µm and ~1.5e-3 rad (the original's own result moves that much with its window size).
+    assert!(dev_xy < 1.5 && dev_alpha < 2.5e-3 && dev_ps < 2e-3);
+}
+
+#[test]
+fn dark_dot_image_polarity_from_the_finders() {
+    let image = open_hp("HPCodeImage_20um.png");
+    let mut auto = HpCodeDetector::new(HpCodeParams::new(20.0, 33)).unwrap();
+    let found = auto.detect(&image).unwrap();
+    assert_eq!(found.len(), 2, "{found:#?}");
+    for id in [0, 1] {
+        let m = by_id(&found, id);
+        assert_eq!(m.polarity, Polarity::DarkDots);
+        // Documented as W = 33, these markers are 39 cells wide (20 dots, finders 16 periods
+        // apart); their centre is then the gap between four dots.
+        assert_eq!(m.half_periods, 39);
+        assert!(!m.mirrored);
+    }
+    // The polarity setting filters; the bright setting finds nothing here.
+    let mut p = HpCodeParams::new(20.0, 33);
+    p.polarity = Some(Polarity::DarkDots);
+    let dark = HpCodeDetector::new(p.clone())
+        .unwrap()
+        .detect(&image)
+        .unwrap();
+    for (a, b) in dark.iter().zip(&found) {
+        assert_eq!((a.id, a.pose), (b.id, b.pose));
+    }
+    p.polarity = Some(Polarity::BrightDots);
+    assert!(HpCodeDetector::new(p)
+        .unwrap()
+        .detect(&image)
+        .unwrap()
+        .is_empty());
+    // The original (S = 256, dark dots not inverted: its phase origin is the bright gap, here
+    // the true marker centre): id 1 = (106.313, 325.622, 1.57991, 2.39519). For id 0 its peak
+    // search took the mirror of a lobe lying on the ky = 0 row (METHOD.md §4.3 step 7), so its
+    // "plane 1" is the other axis; with that axis we get its numbers too (checked by hand:
+    // 325.317, 131.723, 0.00968, 2.40948).
+    let mut original = HpCodeDetector::new(HpCodeParams::original(20.0, 33, 256)).unwrap();
+    let found = original.detect(&image).unwrap();
+    let p = by_id(&found, 1).pose;
+    assert!(
+        (p.x - 106.313).abs() < 0.01 && (p.y - 325.622).abs() < 0.01,
+        "{p:?}"
+    );
+    assert!((p.alpha - 1.57991).abs() < 2e-5 && (p.pixel_size - 2.39519).abs() < 1e-4);
+    let p = by_id(&found, 0).pose;
+    assert!(
+        (p.x - 325.317).abs() < 0.5 && (p.y - 131.723).abs() < 0.5,
+        "{p:?}"
+    );
+}
+
+/// An exact pixel-grid transform: image operation, point map and linear part.
+struct Transform {
+    name: &'static str,
+    apply: fn(&GreyImage) -> GreyImage,
+    /// Linear part on `(col, row)` vectors.
+    linear: Matrix2<f64>,
+}
+
+impl Transform {
+    /// Image of pixel `p` of a `w × h` image.
+    fn point(&self, p: Vector2<f64>, w: usize, h: usize) -> Vector2<f64> {
+        let (w, h) = ((w - 1) as f64, (h - 1) as f64);
+        let q = self.linear * p;
+        // Translation so that the transformed image starts at (0, 0).
+        let corners =
+            [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)].map(|(x, y)| self.linear * Vector2::new(x, y));
+        let min = Vector2::new(
+            corners.iter().map(|c| c.x).fold(f64::INFINITY, f64::min),
+            corners.iter().map(|c| c.y).fold(f64::INFINITY, f64::min),
+        );
+        q - min
+    }
+}
+
+fn transforms() -> Vec<Transform> {
+    vec![
+        Transform {
+            name: "rot90",
+            apply: |i| i.rotated_90_clockwise(),
+            linear: Matrix2::new(0.0, -1.0, 1.0, 0.0),
+        },
+        Transform {
+            name: "rot180",
+            apply: |i| i.rotated_90_clockwise().rotated_90_clockwise(),
+            linear: Matrix2::new(-1.0, 0.0, 0.0, -1.0),
+        },
+        Transform {
+            name: "rot270",
+            apply: |i| {
+                i.rotated_90_clockwise()
+                    .rotated_90_clockwise()
+                    .rotated_90_clockwise()
+            },
+            linear: Matrix2::new(0.0, 1.0, -1.0, 0.0),
+        },
+        Transform {
+            name: "flip_h",
+            apply: |i| i.flipped_horizontally(),
+            linear: Matrix2::new(-1.0, 0.0, 0.0, 1.0),
+        },
+        Transform {
+            name: "flip_v",
+            apply: |i| i.flipped_vertically(),
+            linear: Matrix2::new(1.0, 0.0, 0.0, -1.0),
+        },
+        Transform {
+            name: "transpose",
+            apply: |i| i.transposed(),
+            linear: Matrix2::new(0.0, 1.0, 1.0, 0.0),
+        },
+    ]
+}
+
+/// Unit vector at `angle` (image frame, y down).
+fn unit(angle: f64) -> Vector2<f64> {
+    Vector2::new(angle.cos(), angle.sin())
+}
+
+#[test]
+fn rotations_and_flips_of_real_images_move_poses_exactly() {
+    let cases = [
+        ("Image96.png", 15.5),
+        ("Image100.png", 15.5),
+        ("Image105.png", 15.5),
+        ("HPCodeImage_20um.png", 20.0),
+    ];
+    let (mut worst_px, mut worst_rad) = (0.0f64, 0.0f64);
+    for (name, period) in cases {
+        let image = open_hp(name);
+        let (w, h) = (image.width(), image.height());
+        // The automatic window size is quantised (FFT-friendly sizes) from the measured marker
+        // size, which on real images moves by ~0.3 % with the window: near a size boundary a
+        // transformed image may get the next size and a slightly different (~1e-2 px) result.
+        // Fix the size to the smaller automatic one of the image; the window centre still
+        // comes from the measurement.
+        let auto = HpCodeDetector::new(HpCodeParams::new(period, 33))
+            .unwrap()
+            .detect(&image)
+            .unwrap();
+        let mut params = HpCodeParams::new(period, 33);
+        params.window_size = auto.iter().map(|m| m.window.1).min();
+        params.apodize = Some(false);
+        let mut detector = HpCodeDetector::new(params).unwrap();
+        let before = detector.detect(&image).unwrap();
+        assert_eq!(before.len(), 2, "{name}");
+        for t in transforms() {
+            let after = detector.detect(&(t.apply)(&image)).unwrap();
+            assert_eq!(after.len(), 2, "{name} {}", t.name);
+            let reflection = t.linear.determinant() < 0.0;
+            for m in &before {
+                let hand = if m.mirrored { -1.0 } else { 1.0 };
+                let ex = t.linear * unit(m.pose.alpha);
+                let ey = t.linear * unit(m.pose.alpha + hand * FRAC_PI_2);
+                // A reflection shows the marker from behind. With ID bits the detector sees it
+                // (`mirrored`); an ID-0 marker is symmetric about its diagonal, so it reads as
+                // a marker seen from the front with its axes swapped.
+                let (axis, mirrored) = match (reflection, m.id) {
+                    (false, _) => (ex, m.mirrored),
+                    (true, 0) => (if m.mirrored { ex } else { ey }, false),
+                    (true, _) => (ex, !m.mirrored),
+                };
+                let origin = t.point(m.origin_px, w, h);
+                let n = by_id(&after, m.id);
+                assert_eq!(n.mirrored, mirrored, "{name} {} id {}", t.name, m.id);
+                let err_px = (n.origin_px - origin).norm();
+                let err_rad = wrap_to_pi(n.pose.alpha - axis.y.atan2(axis.x)).abs();
+                assert!(
+                    (n.pose.pixel_size / m.pose.pixel_size - 1.0).abs() < 1e-7,
+                    "{name} {}: {:?} {:?} windows {:?} {:?} lobes {:?} {:?}",
+                    t.name,
+                    m.pose,
+                    n.pose,
+                    m.window,
+                    n.window,
+                    m.analysis.lobes,
+                    n.analysis.lobes
+                );
+                assert!(
+                    err_px < 2e-3,
+                    "{name} {} id {}: {err_px:.2e} px",
+                    t.name,
+                    m.id
+                );
+                assert!(
+                    err_rad < 1e-5,
+                    "{name} {} id {}: {err_rad:.2e} rad",
+                    t.name,
+                    m.id
+                );
+                worst_px = worst_px.max(err_px);
+                worst_rad = worst_rad.max(err_rad);
+            }
+        }
+    }
+    println!("rotations and flips: worst {worst_px:.2e} px, {worst_rad:.2e} rad");
+}
