@@ -146,17 +146,23 @@ class ParamClient:
 
     @staticmethod
     def _call(writer, reader, request, timeout):
+        # Matching is asymmetric: our endpoints may be matched before the node's reply writer
+        # has matched our reader, and a reply written before that is lost. get/set are
+        # idempotent, so the request is re-sent every second until a reply comes.
         reader.take(N=100)
-        writer.write(request)
         deadline = time.monotonic() + timeout
+        next_send = 0.0
         while time.monotonic() < deadline:
+            if time.monotonic() >= next_send:
+                writer.write(request)
+                next_send = time.monotonic() + 1.0
             replies = reader.take(N=1)
             if replies:
                 return replies[0]
             time.sleep(0.02)
         raise AssertionError(f"no reply to {type(request).__name__} within {timeout} s")
 
-    def set(self, name, value, timeout=10.0):
+    def set(self, name, value, timeout=30.0):
         """Sets one parameter; `value` is a t.ParameterValue. Returns (successful, reason)."""
         reply = self._call(self.set_w, self.set_r,
                            t.SetParametersRequest(parameters=[t.Parameter(name=name, value=value)]),
@@ -164,6 +170,6 @@ class ParamClient:
         result = reply.results[0]
         return result.successful, result.reason
 
-    def get(self, name, timeout=10.0):
+    def get(self, name, timeout=30.0):
         reply = self._call(self.get_w, self.get_r, t.GetParametersRequest(names=[name]), timeout)
         return reply.values[0]
