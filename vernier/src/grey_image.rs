@@ -292,11 +292,12 @@ impl GreyImage {
         }
     }
 
-    /// The image as the phase engine expects it for `polarity` (inverted for dark dots).
-    pub fn with_polarity(self, polarity: Polarity) -> GreyImage {
+    /// The image as the phase engine expects it for `polarity`: borrowed as is for bright dots,
+    /// an inverted copy for dark dots.
+    pub fn as_bright_dots(&self, polarity: Polarity) -> std::borrow::Cow<'_, GreyImage> {
         match polarity {
-            Polarity::BrightDots => self,
-            Polarity::DarkDots => self.inverted(),
+            Polarity::BrightDots => std::borrow::Cow::Borrowed(self),
+            Polarity::DarkDots => std::borrow::Cow::Owned(self.inverted()),
         }
     }
 

@@ -71,14 +71,7 @@ impl PeriodicDetector {
 
     /// Measures `image`.
     pub fn detect(&mut self, image: &GreyImage) -> Result<PeriodicDetection> {
-        let inverted;
-        let image = match self.params.polarity {
-            Polarity::BrightDots => image,
-            Polarity::DarkDots => {
-                inverted = image.inverted();
-                &inverted
-            }
-        };
+        let image = &*image.as_bright_dots(self.params.polarity);
         let analysis = self.engine.analyze(image, &self.params.phase)?;
         let pose = periodic_pose(&analysis, self.params.period);
         let (cx, cy) = image.center();

@@ -174,14 +174,7 @@ impl MegarenaDetector {
     /// [`Error::Decode`] when too few periods are visible to read the code ("not enough
     /// periods to decode") or the bits are inconsistent or ambiguous.
     pub fn detect(&mut self, image: &GreyImage) -> Result<MegarenaDetection> {
-        let inverted;
-        let image = match self.params.polarity {
-            Polarity::BrightDots => image,
-            Polarity::DarkDots => {
-                inverted = image.inverted();
-                &inverted
-            }
-        };
+        let image = &*image.as_bright_dots(self.params.polarity);
         let analysis = self.engine.analyze(image, &self.params.phase)?;
         self.thumbnail.sample(image, &analysis.planes)?;
         let orientation = orientation::find_orientation(&self.thumbnail)?;
