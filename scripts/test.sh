@@ -33,3 +33,8 @@ echo "== cargo test"
 cargo test --workspace --locked
 echo "== ROS 2 node against an independent DDS (Cyclone DDS)"
 VERNIER_ROS_PROFILE=test bash test/run_interop.sh
+# The optional rerun feature is never in the default build (a large SDK); it must still
+# compile and pass the lints.
+echo "== cargo check/clippy --features rerun (vernier-cli)"
+cargo check -p vernier-cli --features rerun --all-targets --locked
+cargo clippy -p vernier-cli --features rerun --all-targets --locked -- -D warnings

@@ -6,7 +6,10 @@
 //!   a frame still in the slot is replaced and counted as dropped, so frames never queue;
 //! * **worker**: takes the slot's frame, runs [`Processor::process`] and publishes every
 //!   output with the image stamp;
-//! * **spinner**: serves the parameter services (`ros2 param get/set/list/describe`);
+//! * **spinner**: ros2-client's graph bookkeeping (discovery, `/clock`);
+//! * **parameters**: serves the parameter services (`ros2 param get/set/list/describe`) in the
+//!   request/reply mapping of the middleware named by `RMW_IMPLEMENTATION`
+//!   ([`crate::param_services`]);
 //! * **main**: publishes `/diagnostics` about once a second and watches whether anyone
 //!   subscribes to `~/debug_image`.
 //!
@@ -17,6 +20,7 @@ use crate::diagnostics::{Stats, Throttle};
 use crate::messages::{
     DiagnosticArray, Image, MarkerPoseArray, PoseStamped, RosMessage, TfMessage,
 };
+use crate::param_services::{mapping_for_rmw, ParameterAccess, ParameterServices};
 use crate::params::NodeParams;
 use crate::processing::{annotate, FrameOutput, Processor};
 use crate::ros_args::{fully_qualified, RosArgs};
@@ -132,7 +136,8 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
         .map_err(|e| format!("cannot start DDS: {e:?}"))?;
     let mut options = NodeOptions::new()
         .enable_rosout(true)
-        .start_parameter_services(true);
+        // Served by crate::param_services instead, which also speaks Cyclone's mapping.
+        .start_parameter_services(false);
     for (name, value) in params.values() {
         options = options.declare_parameter(name, value.clone());
     }
@@ -188,6 +193,9 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
         topic("~/markers")
     );
 
+    let rmw = std::env::var("RMW_IMPLEMENTATION").ok();
+    let parameter_services =
+        ParameterServices::create(&mut node, &fq_name, mapping_for_rmw(rmw.as_deref()))?;
     let spinner = node
         .spinner()
         .map_err(|e| format!("cannot start the parameter services: {e:?}"))?;
@@ -201,6 +209,16 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
         .map_err(|e| e.to_string())?;
 
     let node = Arc::new(Mutex::new(node));
+    {
+        let access = NodeParameters {
+            node: Arc::clone(&node),
+            shared: Arc::clone(&shared),
+        };
+        std::thread::Builder::new()
+            .name("parameters".into())
+            .spawn(move || parameter_services.serve(&access))
+            .map_err(|e| e.to_string())?;
+    }
     {
         let shared = Arc::clone(&shared);
         std::thread::Builder::new()
@@ -243,6 +261,34 @@ fn apply_parameter(shared: &Shared, name: &str, value: &ParameterValue) -> Resul
         guard.1 += 1;
     }
     Ok(())
+}
+
+/// The parameter services' view of the node: ros2-client's store (declared parameters, our
+/// validator and set action, `/parameter_events`) plus our validation for atomic sets.
+struct NodeParameters {
+    node: Arc<Mutex<Node>>,
+    shared: Arc<Shared>,
+}
+
+impl ParameterAccess for NodeParameters {
+    fn get(&self, name: &str) -> Option<ParameterValue> {
+        lock(&self.node).get_parameter(name)
+    }
+    fn names(&self) -> Vec<String> {
+        lock(&self.node).list_parameters()
+    }
+    fn set(&self, name: &str, value: ParameterValue) -> Result<(), String> {
+        // Lock order: node, then params (inside the validator); the worker never holds params
+        // while taking the node.
+        lock(&self.node).set_parameter(name, value)
+    }
+    fn validate_all(&self, changes: &[(String, ParameterValue)]) -> Result<(), String> {
+        let mut params = lock(&self.shared.params).0.clone();
+        for (name, value) in changes {
+            params = params.with(name, value)?;
+        }
+        Ok(())
+    }
 }
 
 fn init_logging(level: Option<&str>) {

@@ -560,4 +560,81 @@ mod tests {
         let q = rel.pose.orientation;
         assert!((2.0 * q.z.atan2(q.w) - 0.2).abs() < 1e-12);
     }
+
+    #[test]
+    fn hp_code_pair_through_the_detector() {
+        // Two HP codes (W 33, period 8 µm at 1 µm/px: 8 px) with IDs 37 and 300 in one 8-bit
+        // frame, far from the centre: every published pose and the pair's relative pose agree
+        // with the truth within the image-position (1e-3 px) and scale (1e-5) errors.
+        let p = params(&[
+            ("pattern_type", ParameterValue::String("hpcode".into())),
+            ("period", ParameterValue::Double(8.0)),
+            ("code_size", ParameterValue::Integer(33)),
+            (
+                "relative_pairs",
+                ParameterValue::StringArray(vec!["37:300".into()]),
+            ),
+        ]);
+        let layout = |id| {
+            vernier::layout::HpCodeLayout::from_half_periods(8.0, 33)
+                .and_then(|l| l.with_id(id))
+                .unwrap_or_else(|e| panic!("{e}"))
+        };
+        let (la, lb) = (layout(37), layout(300));
+        let a =
+            vernier::Pose::from_origin_in_image(nalgebra::Vector2::new(-110.3, -98.6), 0.4, 1.0);
+        let b =
+            vernier::Pose::from_origin_in_image(nalgebra::Vector2::new(108.7, 101.2), -2.0, 1.0);
+        let mut opts = RenderOptions::new(512, 512);
+        opts.blur_sigma = 0.5;
+        opts.bit_depth = Some(8);
+        let items: [(&dyn vernier::layout::Layout, vernier::Pose); 2] = [(&la, a), (&lb, b)];
+        let img = vernier::render::render_scene(&items, &opts).unwrap_or_else(|e| panic!("{e}"));
+        let bytes = img
+            .pixels()
+            .iter()
+            .map(|v| (v * 255.0).round() as u8)
+            .collect();
+        let mut processor = Processor::new(p, 0).unwrap_or_else(|e| panic!("{e}"));
+        let (out, _) = processor
+            .process(&mono8(512, 512, bytes))
+            .unwrap_or_else(|e| panic!("{e}"));
+        let mut ids: Vec<u64> = out.markers.markers.iter().map(|m| m.id).collect();
+        ids.sort_unstable();
+        assert_eq!(ids, vec![37, 300], "{:?}", out.detect_error);
+        for (id, truth) in [(37, a), (300, b)] {
+            let published = out.poses.iter().find(|(i, _)| *i == id);
+            let Some((_, pose)) = published else {
+                panic!("no pose for marker {id}")
+            };
+            let expected = truth.scaled(1e-6).camera_from_pattern().translation.vector;
+            let err_m = ((pose.pose.position.x - expected.x).powi(2)
+                + (pose.pose.position.y - expected.y).powi(2))
+            .sqrt();
+            // 1e-3 px plus the scale error (1e-5) over the marker's distance from the centre.
+            let tol_m = (1e-3 + 1e-5 * truth.origin_in_image().norm()) * 1e-6;
+            assert!(
+                err_m < tol_m,
+                "marker {id}: error {err_m:.3e} m > {tol_m:.3e} m"
+            );
+        }
+        assert_eq!(out.relative.len(), 1);
+        let ((ia, ib), rel) = &out.relative[0];
+        assert_eq!((*ia, *ib), (37, 300));
+        assert_eq!(rel.header.frame_id, "vernier_marker_37");
+        let truth = a.scaled(1e-6).relative(&b.scaled(1e-6));
+        let t = truth.translation.vector;
+        let err_m =
+            ((rel.pose.position.x - t.x).powi(2) + (rel.pose.position.y - t.y).powi(2)).sqrt();
+        // 2e-3 px, the scale error over both markers' distances and a 2e-5 rad yaw error of
+        // marker a over their separation (≈ 300 px).
+        let tol_m = (2e-3 + 1e-5 * 300.0 + 2e-5 * 300.0) * 1e-6;
+        assert!(
+            err_m < tol_m,
+            "relative error {err_m:.3e} m > {tol_m:.3e} m"
+        );
+        let q = rel.pose.orientation;
+        let yaw_err = vernier::phase::wrap_to_pi(2.0 * q.z.atan2(q.w) - (-2.0 - 0.4));
+        assert!(yaw_err.abs() < 4e-5, "relative yaw error {yaw_err:.3e} rad");
+    }
 }

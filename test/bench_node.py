@@ -1,13 +1,19 @@
 #!/usr/bin/env python3
 """Benchmark of the detector node through DDS (not run in CI): a Cyclone DDS publisher sends
-1024×1024 mono8 frames (rendered by the project, periodic grid) at 30 Hz and 60 Hz for 30 s
-each; a Cyclone reader on `~/markers` timestamps every result. Reports:
+1024×1024 mono8 frames (rendered by the project: a periodic grid, or two HP code markers with
+IDs 37 and 300) at 30 Hz and 60 Hz for 30 s each; a Cyclone reader on `~/markers` timestamps
+every result. Reports, per marker kind:
   * end-to-end latency = receipt time − image stamp (stamp = send time), p50 / p99;
-  * frames sent, processed (results received), dropped by the node while busy (its
-    /diagnostics `frames_dropped`), lost otherwise (sent − processed − dropped);
+  * frames sent, processed (results received), of those with every marker found, dropped by
+    the node while busy (its /diagnostics `frames_dropped`), lost otherwise
+    (sent − processed − dropped);
   * node CPU time per processed frame (user + system, /proc/<pid>/stat).
 
-    test/run_bench.sh [--duration 30] [--rates 30,60]
+    test/run_bench.sh [--kind periodic|hpcode|both] [--duration 30] [--rates 30,60]
+
+`--kind hpcode` runs the node with `pattern_type:=hpcode code_size:=33 marker_ids:=[37, 300]
+relative_pairs:=['37:300']` (both poses, the relative pose and /tf published per frame);
+`both` runs a fresh node per kind and prints both tables.
 
 Frames are serialised once and only their stamp is patched before each write, so the Python
 publisher keeps up at 60 Hz (Cyclone's own C writer sends them)."""
@@ -73,7 +79,7 @@ class Receiver(threading.Thread):
                 self.diagnostics = {kv.key: kv.value for kv in d.status[0].values}
 
 
-def run_rate(peer, receiver, node, frames, rate, seconds):
+def run_rate(peer, receiver, node, frames, rate, seconds, expected_markers=1):
     payloads = []
     for data in frames:
         msg = harness.mono8(SIZE, SIZE, data, 0)
@@ -105,14 +111,14 @@ def run_rate(peer, receiver, node, frames, rate, seconds):
     cpu = cpu_seconds(node.pid) - cpu0
     results = [r for r in receiver.results if r[0] in sent]
     latencies = [(recv - stamp) / 1e6 for stamp, recv, _ in results]
-    found = sum(1 for r in results if r[2] > 0)
+    all_found = sum(1 for r in results if r[2] >= expected_markers)
     dropped = int(receiver.diagnostics.get("frames_dropped", 0)) - dropped0
     processed = len(results)
     return {
         "rate": rate,
         "sent": len(sent),
         "processed": processed,
-        "with_marker": found,
+        "all_found": all_found,
         "dropped_busy": dropped,
         "lost_other": len(sent) - processed - dropped,
         "p50": percentile(latencies, 0.5),
@@ -122,40 +128,79 @@ def run_rate(peer, receiver, node, frames, rate, seconds):
     }
 
 
+# Per kind: renderer flags, node parameters, marker IDs per frame, relative pairs.
+KINDS = {
+    "periodic": {
+        "render": [],
+        "params": ["-p", "period:=10.0", "-p", "marker_ids:=[0]"],
+        "ids": (0,),
+        "pairs": [],
+        "label": "periodic grid",
+    },
+    "hpcode": {
+        "render": ["--ids", "37,300", "--code-size", "33"],
+        "params": ["-p", "pattern_type:=hpcode", "-p", "period:=10.0", "-p", "code_size:=33",
+                   "-p", "marker_ids:=[37, 300]", "-p", "relative_pairs:=['37:300']"],
+        "ids": (37, 300),
+        "pairs": [(37, 300)],
+        "label": "2 HP codes (W 33) + relative pose",
+    },
+}
+
+
+def bench_kind(kind, domain, work, args):
+    """Starts a node for `kind`, runs every rate, stops it; returns the table rows."""
+    spec = KINDS[kind]
+    _, frames = harness.render_frames(work / kind, args.frames, SIZE, 10.0, 0.8, seed=3,
+                                      kind=kind, extra=spec["render"])
+    log = work / f"node_{kind}.log"
+    node = harness.start_node(domain, [*spec["params"], "--log-level", "error"], log)
+    peer = harness.RosPeer(domain, marker_ids=spec["ids"], relative_pairs=spec["pairs"])
+    try:
+        if not peer.wait_for_node():
+            raise SystemExit(f"node not discovered:\n{log.read_text()}")
+        receiver = Receiver(peer)
+        receiver.start()
+        # Warm-up: FFT plans, discovery of the per-marker topics.
+        markers = len(spec["ids"])
+        run_rate(peer, receiver, node, frames, 10, 2.0, markers)
+        rows = [run_rate(peer, receiver, node, frames, float(r), args.duration, markers)
+                for r in args.rates.split(",")]
+        receiver.running = False
+        receiver.join(timeout=2.0)
+    finally:
+        harness.stop_node(node)
+    return rows
+
+
+def print_table(kind, rows, duration):
+    print(f"detector node, {SIZE}x{SIZE} mono8, {KINDS[kind]['label']}, {duration:.0f} s per "
+          f"rate, {os.cpu_count()} CPUs")
+    print(f"{'rate Hz':>8} {'sent':>6} {'processed':>9} {'all found':>9} {'dropped':>8} "
+          f"{'lost':>5} {'p50 ms':>8} {'p99 ms':>8} {'mean ms':>8} {'CPU ms/frame':>13}")
+    for r in rows:
+        print(f"{r['rate']:8.0f} {r['sent']:6d} {r['processed']:9d} {r['all_found']:9d} "
+              f"{r['dropped_busy']:8d} {r['lost_other']:5d} {r['p50']:8.2f} {r['p99']:8.2f} "
+              f"{r['mean']:8.2f} {r['cpu_ms_per_frame']:13.2f}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--kind", choices=[*KINDS, "both"], default="periodic",
+                        help="marker kind of the frames (both: one node and table per kind)")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds per rate")
     parser.add_argument("--rates", default="30,60", help="comma-separated Hz")
     parser.add_argument("--frames", type=int, default=8, help="distinct frames cycled")
     args = parser.parse_args()
     domain = int(os.environ.get("ROS_DOMAIN_ID", random.randint(1, 200)))
     work = Path(tempfile.mkdtemp(prefix="vernier_bench_"))
-    _, frames = harness.render_frames(work, args.frames, SIZE, 10.0, 0.8, seed=3)
-    node = harness.start_node(
-        domain, ["-p", "period:=10.0", "-p", "marker_ids:=[0]", "--log-level", "error"],
-        work / "node.log",
-    )
-    peer = harness.RosPeer(domain)
-    try:
-        if not peer.wait_for_node():
-            raise SystemExit(f"node not discovered:\n{(work / 'node.log').read_text()}")
-        receiver = Receiver(peer)
-        receiver.start()
-        # Warm-up: FFT plans, discovery of the per-marker topics.
-        run_rate(peer, receiver, node, frames, 10, 2.0)
-        rows = [run_rate(peer, receiver, node, frames, float(r), args.duration)
-                for r in args.rates.split(",")]
-        receiver.running = False
-    finally:
-        harness.stop_node(node)
-    print(f"detector node, {SIZE}x{SIZE} mono8 periodic grid, {args.duration:.0f} s per rate, "
-          f"{os.cpu_count()} CPUs")
-    print(f"{'rate Hz':>8} {'sent':>6} {'processed':>9} {'dropped':>8} {'lost':>5} "
-          f"{'p50 ms':>8} {'p99 ms':>8} {'mean ms':>8} {'CPU ms/frame':>13}")
-    for r in rows:
-        print(f"{r['rate']:8.0f} {r['sent']:6d} {r['processed']:9d} {r['dropped_busy']:8d} "
-              f"{r['lost_other']:5d} {r['p50']:8.2f} {r['p99']:8.2f} {r['mean']:8.2f} "
-              f"{r['cpu_ms_per_frame']:13.2f}")
+    kinds = list(KINDS) if args.kind == "both" else [args.kind]
+    tables = []
+    for n, kind in enumerate(kinds):
+        # A domain per node: nothing of the previous node's discovery lingers.
+        tables.append((kind, bench_kind(kind, (domain + n - 1) % 200 + 1, work, args)))
+    for kind, rows in tables:
+        print_table(kind, rows, args.duration)
     return 0
 
 

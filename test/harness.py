@@ -38,11 +38,15 @@ RESULT_QOS = Qos(
 )
 
 
-def render_frames(out_dir, count, size=1024, period=10.0, pixel_size=0.8, seed=1):
-    """Renders `count` frames with the project's renderer; returns (truth dict, list of bytes)."""
+def render_frames(out_dir, count, size=1024, period=10.0, pixel_size=0.8, seed=1,
+                  kind="periodic", extra=()):
+    """Renders `count` frames with the project's renderer (src/bin/render_test_frames.rs;
+    `kind` periodic: one grid, ID 0; hpcode: two HP codes, see its header for `extra` flags
+    such as `--ids a,b` and `--code-size W`); returns (truth dict, list of bytes)."""
     subprocess.run(
-        [str(RENDER_BIN), "--out", str(out_dir), "--count", str(count), "--size", str(size),
-         "--period", str(period), "--pixel-size", str(pixel_size), "--seed", str(seed)],
+        [str(RENDER_BIN), "--out", str(out_dir), "--kind", kind, "--count", str(count),
+         "--size", str(size), "--period", str(period), "--pixel-size", str(pixel_size),
+         "--seed", str(seed), *extra],
         check=True,
     )
     truth = json.loads((Path(out_dir) / "truth.json").read_text())
@@ -79,9 +83,12 @@ def mono8(width, height, data, sec, nanosec=0, frame_id="camera", encoding="mono
 
 
 class RosPeer:
-    """A Cyclone DDS participant with an image writer and readers on the node's outputs."""
+    """A Cyclone DDS participant with an image writer and readers on the node's outputs:
+    `~/markers`, `~/marker_<id>/pose` for each of `marker_ids` (`poses[id]`),
+    `~/relative/marker_<a>_<b>/pose` for each `(a, b)` of `relative_pairs`
+    (`relative[(a, b)]`), /tf and /diagnostics."""
 
-    def __init__(self, domain_id, node="/vernier_detector", marker_ids=(0,)):
+    def __init__(self, domain_id, node="/vernier_detector", marker_ids=(0,), relative_pairs=()):
         self.dp = DomainParticipant(domain_id)
         self.image_writer = DataWriter(self.dp, Topic(self.dp, "rt/image", t.Image), qos=IMAGE_QOS)
 
@@ -90,13 +97,17 @@ class RosPeer:
 
         self.markers = reader(f"rt{node}/markers", t.MarkerPoseArray)
         self.poses = {i: reader(f"rt{node}/marker_{i}/pose", t.PoseStamped) for i in marker_ids}
+        self.relative = {
+            (a, b): reader(f"rt{node}/relative/marker_{a}_{b}/pose", t.PoseStamped)
+            for a, b in relative_pairs
+        }
         self.tf = reader("rt/tf", t.TFMessage)
         self.diagnostics = reader("rt/diagnostics", t.DiagnosticArray)
 
     def wait_for_node(self, timeout=30.0):
         """Waits until the node's image reader and output writers are matched."""
         deadline = time.monotonic() + timeout
-        readers = [self.markers, *self.poses.values()]
+        readers = [self.markers, *self.poses.values(), *self.relative.values()]
         while time.monotonic() < deadline:
             if self.image_writer.get_matched_subscriptions() and all(
                 r.get_matched_publications() for r in readers
@@ -117,9 +128,10 @@ class RosPeer:
 class ParamClient:
     """`ros2 param get/set` over the node's rcl_interfaces services, Cyclone DDS side.
 
-    ros2-client serves them with the "enhanced" RPC-over-DDS mapping (rmw_fastrtps style: no
-    request header in the payload); a request without a related-sample identity is answered
-    with its own sample identity, so a plain DDS writer/reader pair can call the service."""
+    Without RMW_IMPLEMENTATION the node serves the "enhanced" RPC-over-DDS mapping
+    (rmw_fastrtps style: no request header in the payload); a request without a related-sample
+    identity is answered with its own sample identity, so a plain DDS writer/reader pair can
+    call the service. (Cyclone's mapping: test/cyclone_params.py.)"""
 
     SERVICE_QOS = Qos(Policy.Reliability.Reliable(duration(seconds=1)),
                       Policy.History.KeepLast(10), XCDR1)

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Benchmark of the detector node through DDS (not part of CI): builds the release binaries,
 # installs the test tools into `.venv/`, and runs test/bench_node.py in a private network
-# namespace (loopback only). Arguments go to bench_node.py (--duration, --rates, --frames).
+# namespace (loopback only). Arguments go to bench_node.py (--kind periodic|hpcode|both,
+# --duration, --rates, --frames).
 set -euo pipefail
 
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"

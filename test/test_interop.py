@@ -3,7 +3,8 @@
 (Cyclone DDS, PyPI `cyclonedds`), no ROS installation involved.
 
 A Cyclone publisher sends synthetic 1024×1024 mono8 images rendered by the project at known
-poses on `rt/image` (`sensor_msgs::msg::dds_::Image_`, best effort); Cyclone readers check:
+poses on `rt/image` (`sensor_msgs::msg::dds_::Image_`, best effort); Cyclone readers check,
+first with the node detecting a periodic grid (ID 0):
   * every PoseStamped (`~/marker_0/pose`) and MarkerPoseArray entry against the true pose,
     within 1e-3 px converted to metres, with the image stamp and the configured frame;
   * /tf carries the same transform;
@@ -11,10 +12,23 @@ poses on `rt/image` (`sensor_msgs::msg::dds_::Image_`, best effort); Cyclone rea
   * bad messages (wrong length, unknown encoding, zero size, undecodable CDR) are survived
     and counted in /diagnostics;
   * the parameter services (what `ros2 param get/set` calls): invalid values are rejected
-    with a reason, a new period applies from the next frame.
-Relative poses need two markers with distinct IDs in one image: the periodic detector reports
-one (ID 0), so they are covered by the unit tests of src/processing.rs until a multi-marker
-detector (HP code) is available through `vernier::Detector`.
+    with a reason, a new period applies from the next frame;
+  * the annotated debug image while someone subscribes;
+then with a second node process (own DDS domain) detecting HP codes (`pattern_type:=hpcode`)
+on frames holding two markers with distinct IDs `a`, `b` at random poses anywhere in the image,
+and `relative_pairs:=['a:b']`:
+  * the MarkerPoseArray has exactly both IDs; each `~/marker_<id>/pose` equals its array entry
+    and matches the truth: the image position it implies (position / measured pixel size)
+    within 1e-3 px, the pixel size within 1e-5 (relative), hence the position in metres
+    within (1e-3 px + 1e-5 × the marker's distance from the image centre) × pixel size (a
+    marker 500 px off-centre turns a 1e-5 scale error into 5e-3 px), yaw within 2e-5 rad;
+  * /tf carries both camera → marker transforms;
+  * `~/relative/marker_<a>_<b>/pose` (frame `vernier_marker_<a>`) is the pose of b in a's
+    frame composed from the two published poses (to 1e-12 m) and matches the truth within
+    2e-3 px plus what the scale and yaw tolerances allow over the markers' distances;
+and last with a third node started with RMW_IMPLEMENTATION=rmw_cyclonedds_cpp, called the way
+`ros2 param` on that middleware calls it (Cyclone's request header, test/cyclone_params.py):
+get, a rejected and an accepted set, list and describe.
 
 Run it with test/run_interop.sh (builds, isolates the network, installs cyclonedds).
 Prints `N passed, N failed` and exits non-zero on any failure."""
@@ -31,6 +45,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import harness  # noqa: E402
+import param_mapping_check  # noqa: E402
 import ros2_types as t  # noqa: E402
 
 SIZE = 1024
@@ -96,12 +111,25 @@ def main():
         run_checks(peer, truth, frames, node)
     finally:
         harness.stop_node(node)
-        log = (work / "node.log").read_text()
-        print("---- node log (tail) ----")
-        print("\n".join(log.splitlines()[-20:]))
+        print_log_tail(work / "node.log")
+    # The HP code node on its own domain: nothing of the first node's discovery lingers.
+    run_hpcode_session(domain % 200 + 1, work / "hpcode")
+    # `ros2 param` from a ROS 2 install on rmw_cyclonedds, again on a domain of its own.
+    cyclone_log = work / "cyclone_params.log"
+    check("ros2 param get/set/list/describe in rmw_cyclonedds's service mapping",
+          lambda: param_mapping_check.check_cyclone_mapping(
+              (domain + 1) % 200 + 1, cyclone_log, PERIOD_UM))
+    if cyclone_log.exists():
+        print_log_tail(cyclone_log, lines=5)
     failed = sum(1 for _, e in results if e is not None)
     print(f"{len(results) - failed} passed, {failed} failed")
     return 1 if failed else 0
+
+
+def print_log_tail(path, lines=20):
+    log = path.read_text()
+    print(f"---- {path.name} (tail) ----")
+    print("\n".join(log.splitlines()[-lines:]))
 
 
 def run_checks(peer, truth, frames, node):
@@ -260,6 +288,155 @@ def run_checks(peer, truth, frames, node):
         assert red > 10, f"{red} red annotation pixels"
 
     check("annotated debug image while subscribed", debug_image_on_demand)
+
+
+# HP code session: marker IDs a, b (several ID bits set), width in half periods, frames.
+HP_IDS = (37, 300)
+HP_CODE_SIZE = 33
+HP_FRAMES = 4
+# Image position (px), pixel size (relative) and yaw (rad) tolerances of each marker. The
+# analysis window of a 33-cell marker at 12.5 px per period is ~130 px: 1e-3 px over its half
+# gives 1.5e-5 rad. (Measured on 300 such markers: image position ≤ 6.6e-4 px, scale ≤ 8.7e-6,
+# yaw ≤ 1.0e-5 rad.)
+HP_TOL_PX = 1e-3
+HP_SCALE_TOL = 1e-5
+HP_YAW_TOL = 2e-5
+# Relative pose: both markers' image positions.
+HP_REL_TOL_PX = 2e-3
+
+
+def run_hpcode_session(domain, work):
+    a, b = HP_IDS
+    truth, frames = harness.render_frames(
+        work, HP_FRAMES, SIZE, PERIOD_UM, PIXEL_UM, seed=7, kind="hpcode",
+        extra=["--ids", f"{a},{b}", "--code-size", str(HP_CODE_SIZE)],
+    )
+    log = work / "node.log"
+    node = harness.start_node(
+        domain,
+        ["-p", "pattern_type:=hpcode", "-p", f"period:={PERIOD_UM}",
+         "-p", f"code_size:={HP_CODE_SIZE}", "-p", f"camera_frame:={CAMERA_FRAME}",
+         "-p", f"marker_ids:=[{a}, {b}]", "-p", f"relative_pairs:=['{a}:{b}']",
+         "-p", "publish_tf:=true"],
+        log,
+    )
+    peer = harness.RosPeer(domain, marker_ids=HP_IDS, relative_pairs=[HP_IDS])
+    peer.domain = domain
+    peer.backlog = {}
+    try:
+        def discovered():
+            assert peer.wait_for_node(), f"HP code node not discovered; log:\n{log.read_text()}"
+
+        check("HP code node discovered (markers, both poses, relative pose)", discovered)
+        if results[-1][1] is None:
+            run_hpcode_checks(peer, truth, frames)
+    finally:
+        harness.stop_node(node)
+        print_log_tail(log)
+
+
+def run_hpcode_checks(peer, truth, frames):
+    a, b = HP_IDS
+    pixel_m = PIXEL_UM * 1e-6
+    published = {}
+
+    def send(frame_bytes, sec):
+        return lambda: peer.image_writer.write(harness.mono8(SIZE, SIZE, frame_bytes, sec))
+
+    for i, (frame, expected) in enumerate(zip(frames, truth["frames"])):
+        sec = 6000 + i
+
+        def markers_match(frame=frame, expected=expected, sec=sec, i=i):
+            array = wait_for(peer, peer.markers, sec, 0, 30.0, resend=send(frame, sec))
+            assert array.header.frame_id == CAMERA_FRAME, array.header.frame_id
+            ids = sorted(m.id for m in array.markers)
+            assert ids == sorted(HP_IDS), f"marker ids {ids}, expected {sorted(HP_IDS)}"
+            by_id = {m.id: m for m in array.markers}
+            for true_marker in expected["markers"]:
+                mid = true_marker["id"]
+                m = by_id[mid]
+                assert not m.duplicate_id and 0.0 < m.quality <= 1.0, (m.duplicate_id, m.quality)
+                assert 0.0 < m.covariance[0] and m.covariance[14] >= 1e5, m.covariance
+                stamped = wait_for(peer, peer.poses[mid], sec, 0, 5.0)
+                assert stamped.header.frame_id == CAMERA_FRAME, stamped.header.frame_id
+                p = stamped.pose
+                assert (p.position.x, p.position.y, p.position.z) == (
+                    m.pose.position.x, m.pose.position.y, m.pose.position.z)
+                assert abs(p.position.z) < 1e-15
+                assert abs(p.orientation.x) < 1e-12 and abs(p.orientation.y) < 1e-12
+                ex, ey, _ = true_marker["position_m"]
+                scale_err = m.pixel_size / pixel_m - 1.0
+                # Image position implied by the message (the node publishes position_px ×
+                # its measured pixel size) against the rendered one.
+                image_err = math.hypot(p.position.x / m.pixel_size - ex / pixel_m,
+                                       p.position.y / m.pixel_size - ey / pixel_m)
+                err_m = math.hypot(p.position.x - ex, p.position.y - ey)
+                radius_px = math.hypot(ex, ey) / pixel_m
+                tol_m = (HP_TOL_PX + HP_SCALE_TOL * radius_px) * pixel_m
+                dyaw = math.remainder(yaw_of(p.orientation) - true_marker["alpha"], 2 * math.pi)
+                print(f"  frame {i} marker {mid} ({radius_px:.0f} px off-centre): image "
+                      f"{image_err:.2e} px, scale {scale_err:+.1e}, metres {err_m:.3e} m = "
+                      f"{err_m / pixel_m:.2e} px (tol {tol_m / pixel_m:.2e}), yaw {dyaw:+.1e} rad")
+                assert image_err < HP_TOL_PX, f"marker {mid}: image error {image_err:.2e} px"
+                assert abs(scale_err) < HP_SCALE_TOL, f"marker {mid}: scale error {scale_err:.1e}"
+                assert err_m < tol_m, f"marker {mid}: position error {err_m:.3e} m > {tol_m:.3e} m"
+                assert abs(dyaw) < HP_YAW_TOL, f"marker {mid}: yaw error {dyaw:.2e} rad"
+                published[(sec, mid)] = p
+
+        check(f"HP code frame {i}: both markers, poses within {HP_TOL_PX} px", markers_match)
+
+        def relative_matches(expected=expected, sec=sec, i=i):
+            rel = wait_for(peer, peer.relative[(a, b)], sec, 0, 10.0)
+            assert rel.header.frame_id == f"vernier_marker_{a}", rel.header.frame_id
+            r = rel.pose
+            pa, pb = published[(sec, a)], published[(sec, b)]
+            # b in a's frame from the two published poses: R(−yaw_a)·(p_b − p_a), yaw_b − yaw_a.
+            ya, yb = yaw_of(pa.orientation), yaw_of(pb.orientation)
+            dx, dy = pb.position.x - pa.position.x, pb.position.y - pa.position.y
+            cx = math.cos(ya) * dx + math.sin(ya) * dy
+            cy = -math.sin(ya) * dx + math.cos(ya) * dy
+            composed = math.hypot(r.position.x - cx, r.position.y - cy)
+            assert composed < 1e-12, f"relative pose is not b in a's frame ({composed:.1e} m)"
+            assert abs(math.remainder(yaw_of(r.orientation) - (yb - ya), 2 * math.pi)) < 1e-9
+            assert abs(r.position.z) < 1e-15
+            tx, ty, _ = expected["relative"]["position_m"]
+            radii = [math.hypot(*m["position_m"][:2]) / pixel_m for m in expected["markers"]]
+            separation_px = math.hypot(tx, ty) / pixel_m
+            tol_px = HP_REL_TOL_PX + HP_SCALE_TOL * sum(radii) + HP_YAW_TOL * separation_px
+            err_m = math.hypot(r.position.x - tx, r.position.y - ty)
+            dyaw = math.remainder(yaw_of(r.orientation) - expected["relative"]["yaw"], 2 * math.pi)
+            print(f"  frame {i} {b} in {a}'s frame ({separation_px:.0f} px apart): "
+                  f"{err_m:.3e} m = {err_m / pixel_m:.2e} px (tol {tol_px:.2e}), "
+                  f"yaw {dyaw:+.1e} rad")
+            assert err_m < tol_px * pixel_m, f"relative position error {err_m / pixel_m:.2e} px"
+            assert abs(dyaw) < 2 * HP_YAW_TOL, f"relative yaw error {dyaw:.2e} rad"
+
+        check(f"HP code frame {i}: relative pose of {b} in {a}'s frame", relative_matches)
+
+    def tf_has_both():
+        sec = 6000 + HP_FRAMES - 1
+        transforms = {tf.child_frame_id: tf for tf in wait_for_tf_all(peer, sec)}
+        for mid in HP_IDS:
+            tf = transforms.get(f"vernier_marker_{mid}")
+            assert tf is not None, f"no /tf for marker {mid}: {sorted(transforms)}"
+            assert tf.header.frame_id == CAMERA_FRAME
+            p = published[(sec, mid)]
+            tr = tf.transform.translation
+            assert (tr.x, tr.y, tr.z) == (p.position.x, p.position.y, p.position.z)
+
+    check("HP code: /tf carries both camera → marker transforms", tf_has_both)
+
+
+def wait_for_tf_all(peer, sec, timeout=10.0):
+    """Every /tf transform stamped `sec` (those of one message)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for msg in peer.take_all(peer.tf):
+            found = [tf for tf in msg.transforms if tf.header.stamp.sec == sec]
+            if found:
+                return found
+        time.sleep(0.05)
+    raise AssertionError(f"no /tf transform stamped {sec}")
 
 
 def wait_for_tf(peer, sec):

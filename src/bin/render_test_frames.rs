@@ -1,41 +1,81 @@
-//! `render_test_frames`: writes synthetic mono8 frames of a periodic dot grid at known poses,
-//! for feeding the node from another process (interoperability test, benchmark, dry runs).
+//! `render_test_frames`: writes synthetic mono8 frames of dot markers at known poses, for
+//! feeding the node from another process (interoperability test, benchmark, dry runs).
 //!
 //! ```text
-//! render_test_frames --out DIR [--count N] [--size 1024] [--period 10] [--pixel-size 0.8]
-//!                    [--seed 1]
+//! render_test_frames --out DIR [--kind periodic|hpcode] [--count N] [--size 1024]
+//!                    [--period 10] [--pixel-size 0.8] [--seed 1]
+//!                    [--code-size 33] [--ids 37,300]          (hpcode only)
 //! ```
 //!
+//! `--kind periodic` (default): one periodic dot grid per frame (reported as ID 0).
+//! `--kind hpcode`: two HP code markers per frame, `--code-size` half-period cells wide
+//! (`W ≡ 1 mod 4`, node parameter `code_size`), with the two distinct IDs of `--ids` (first =
+//! `a`, second = `b`), each at its own random position (fully inside the image, apart from the
+//! other) and random full-turn orientation; both share the frame's pixel size (one camera).
+//!
 //! Writes `DIR/frame_<i>.gray` (raw row-major mono8, `size × size`) and `DIR/truth.json`:
-//! `{"size", "period", "pixel_size", "unit": "um", "frames": [{"file", "markers": [{"id",
-//! "x", "y", "alpha", "pixel_size", "position_m": [x, y, z]}]}]}` where `x, y` are pattern
-//! units (µm) and `position_m` is the expected `PoseStamped` position (camera frame, metres).
-//! Poses lie in the periodic detector's canonical range (`|x|, |y| < P/2`, `α ∈ [0, π/2)`),
-//! images are blurred (σ = 0.5 px) and quantised to 8 bits.
+//! `{"kind", "size", "period", "pixel_size", "unit": "um", "frames": [{"file", "markers": [{"id",
+//! "x", "y", "alpha", "pixel_size", "position_m": [x, y, z]}]}]}` where `x, y, pixel_size` are
+//! pattern units (µm), `alpha` radians, and `position_m` is the expected `PoseStamped` position
+//! (camera frame: origin at the centre pixel, x right, y down; metres), i.e. the translation of
+//! `Pose::scaled(1e-6).camera_from_pattern()` exactly as the node converts a
+//! `vernier::MarkerPose`. HP code frames add `"code_size"` and `"ids": [a, b]` at the top level,
+//! per marker `"origin_px": [col, row]` (marker centre, image pixels), and per frame
+//! `"relative": {"a", "b", "position_m": [x, y, z], "yaw"}`: the pose of marker `b` in marker
+//! `a`'s frame (metres, radians about `a`'s z axis), computed as the node does
+//! (`Pose::relative` of the SI-scaled poses, published on `~/relative/marker_<a>_<b>/pose`).
+//! Periodic poses lie in the detector's canonical range (`|x|, |y| < P/2`, `α ∈ [0, π/2)`);
+//! HP code poses have `α ∈ [−π, π)`. Images are blurred (σ = 0.5 px, before pixel
+//! integration) and quantised to 8 bits.
 
+use nalgebra::Vector2;
+use std::f64::consts::PI;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use vernier::layout::PeriodicLayout;
-use vernier::render::{render, RenderOptions};
+use vernier::layout::{HpCodeLayout, Layout, PeriodicLayout};
+use vernier::render::{render, render_scene, RenderOptions};
 use vernier::Pose;
+
+/// Metres per pattern unit (µm).
+const METRES_PER_UM: f64 = 1e-6;
+
+/// What the frames show.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Kind {
+    /// One periodic dot grid.
+    Periodic,
+    /// Two HP code markers with distinct IDs.
+    HpCode,
+}
 
 struct Args {
     out: PathBuf,
+    kind: Kind,
     count: usize,
+    /// Image side, pixels.
     size: usize,
+    /// Dot period, µm.
     period: f64,
+    /// µm per pixel.
     pixel_size: f64,
     seed: u64,
+    /// HP code width in half-period cells.
+    code_size: usize,
+    /// HP code IDs `a`, `b`.
+    ids: (u64, u64),
 }
 
 fn parse_args() -> Result<Args, String> {
     let mut args = Args {
         out: PathBuf::new(),
+        kind: Kind::Periodic,
         count: 4,
         size: 1024,
         period: 10.0,
         pixel_size: 0.8,
         seed: 1,
+        code_size: 33,
+        ids: (37, 300),
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -46,11 +86,36 @@ fn parse_args() -> Result<Args, String> {
         };
         match flag.as_str() {
             "--out" => args.out = PathBuf::from(value()?),
+            "--kind" => {
+                args.kind = match value()?.as_str() {
+                    "periodic" => Kind::Periodic,
+                    "hpcode" => Kind::HpCode,
+                    other => {
+                        return Err(format!(
+                            "`--kind`: expected periodic or hpcode, got `{other}`"
+                        ))
+                    }
+                }
+            }
             "--count" => args.count = number(value()?)? as usize,
             "--size" => args.size = number(value()?)? as usize,
             "--period" => args.period = number(value()?)?,
             "--pixel-size" => args.pixel_size = number(value()?)?,
             "--seed" => args.seed = number(value()?)? as u64,
+            "--code-size" => args.code_size = number(value()?)? as usize,
+            "--ids" => {
+                let text = value()?;
+                let parsed: Result<Vec<u64>, _> =
+                    text.split(',').map(|t| t.trim().parse::<u64>()).collect();
+                args.ids = match parsed.as_deref() {
+                    Ok(&[a, b]) if a != b => (a, b),
+                    _ => {
+                        return Err(format!(
+                            "`--ids`: expected two distinct ids `a,b`, got `{text}`"
+                        ))
+                    }
+                };
+            }
             other => {
                 return Err(format!(
                     "unknown argument `{other}` (see the source header)"
@@ -84,15 +149,47 @@ impl SplitMix {
     }
 }
 
-fn run(args: &Args) -> Result<(), String> {
-    std::fs::create_dir_all(&args.out)
-        .map_err(|e| format!("cannot create {}: {e}", args.out.display()))?;
+/// Render settings shared by both kinds: σ = 0.5 px optical blur, 8-bit quantisation.
+fn render_options(size: usize) -> RenderOptions {
+    let mut options = RenderOptions::new(size, size);
+    options.blur_sigma = 0.5;
+    options.bit_depth = Some(8);
+    options
+}
+
+/// Writes `image` (grey levels in `[0, 1]`) as raw mono8 `DIR/frame_<i>.gray`; returns the
+/// file name.
+fn write_frame(args: &Args, i: usize, image: &vernier::GreyImage) -> Result<String, String> {
+    let bytes: Vec<u8> = image
+        .pixels()
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect();
+    let file = format!("frame_{i:04}.gray");
+    std::fs::write(args.out.join(&file), &bytes)
+        .map_err(|e| format!("cannot write {file}: {e}"))?;
+    Ok(file)
+}
+
+/// The truth of one marker: pattern-unit pose and the node's `PoseStamped` position (metres).
+fn marker_truth(id: u64, pose: &Pose) -> serde_json::Value {
+    let position = pose
+        .scaled(METRES_PER_UM)
+        .camera_from_pattern()
+        .translation
+        .vector;
+    serde_json::json!({
+        "id": id,
+        "x": pose.x, "y": pose.y, "alpha": pose.alpha, "pixel_size": pose.pixel_size,
+        "position_m": [position.x, position.y, position.z],
+    })
+}
+
+fn periodic_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
     let diagonal = args.size as f64 * args.pixel_size * 1.5;
     let dots = ((diagonal / args.period) as usize + 4) | 1;
     let layout = PeriodicLayout::new(args.period, dots, dots).map_err(|e| e.to_string())?;
-    let mut options = RenderOptions::new(args.size, args.size);
-    options.blur_sigma = 0.5;
-    options.bit_depth = Some(8);
+    let options = render_options(args.size);
     let mut rng = SplitMix(args.seed);
     let mut frames = Vec::new();
     for i in 0..args.count {
@@ -104,31 +201,121 @@ fn run(args: &Args) -> Result<(), String> {
             args.pixel_size,
         );
         let image = render(&layout, &pose, &options).map_err(|e| e.to_string())?;
-        let bytes: Vec<u8> = image
-            .pixels()
-            .iter()
-            .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
-            .collect();
-        let file = format!("frame_{i:04}.gray");
-        std::fs::write(args.out.join(&file), &bytes)
-            .map_err(|e| format!("cannot write {file}: {e}"))?;
-        let position = pose.scaled(1e-6).camera_from_pattern().translation.vector;
+        let file = write_frame(args, i, &image)?;
         frames.push(serde_json::json!({
             "file": file,
-            "markers": [{
-                "id": 0,
-                "x": pose.x, "y": pose.y, "alpha": pose.alpha, "pixel_size": pose.pixel_size,
-                "position_m": [position.x, position.y, position.z],
-            }],
+            "markers": [marker_truth(0, &pose)],
         }));
     }
-    let truth = serde_json::json!({
-        "size": args.size,
-        "period": args.period,
-        "pixel_size": args.pixel_size,
-        "unit": "um",
-        "frames": frames,
-    });
+    Ok(frames)
+}
+
+/// Two HP code markers per frame at random, non-overlapping poses (both fully inside the
+/// image, with a gap of at least two periods between their bounding circles).
+fn hpcode_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
+    let (id_a, id_b) = args.ids;
+    let layout = |id: u64| {
+        HpCodeLayout::from_half_periods(args.period, args.code_size)
+            .and_then(|l| l.with_id(id))
+            .map_err(|e| format!("HP code (--code-size {}, id {id}): {e}", args.code_size))
+    };
+    let layouts = [layout(id_a)?, layout(id_b)?];
+    // Bounding circle of a marker at any angle, pixels, plus a margin for the blur.
+    let radius_px = layouts[0].width() / args.pixel_size / std::f64::consts::SQRT_2 + 4.0;
+    let gap_px = 2.0 * args.period / args.pixel_size;
+    let size = args.size as f64;
+    if 2.0 * radius_px >= size {
+        return Err(format!(
+            "a {}-cell HP code at {} px per period does not fit a {}-pixel frame",
+            args.code_size,
+            args.period / args.pixel_size,
+            args.size
+        ));
+    }
+    let options = render_options(args.size);
+    let center = Vector2::new((args.size / 2) as f64, (args.size / 2) as f64);
+    let mut rng = SplitMix(args.seed);
+    let mut frames = Vec::new();
+    for i in 0..args.count {
+        let place = |rng: &mut SplitMix| {
+            Vector2::new(
+                rng.range(radius_px, size - radius_px),
+                rng.range(radius_px, size - radius_px),
+            )
+        };
+        let first = place(&mut rng);
+        let mut second = place(&mut rng);
+        let mut attempts = 0;
+        while (second - first).norm() < 2.0 * radius_px + gap_px {
+            attempts += 1;
+            if attempts > 10_000 {
+                return Err(format!(
+                    "cannot place two {}-cell HP codes apart in a {}-pixel frame",
+                    args.code_size, args.size
+                ));
+            }
+            second = place(&mut rng);
+        }
+        let poses = [first, second].map(|origin| {
+            Pose::from_origin_in_image(origin - center, rng.range(-PI, PI), args.pixel_size)
+        });
+        let items: Vec<(&dyn Layout, Pose)> = layouts
+            .iter()
+            .zip(poses)
+            .map(|(l, p)| (l as &dyn Layout, p))
+            .collect();
+        let image = render_scene(&items, &options).map_err(|e| e.to_string())?;
+        let file = write_frame(args, i, &image)?;
+        let markers: Vec<serde_json::Value> = [(id_a, &poses[0], first), (id_b, &poses[1], second)]
+            .iter()
+            .map(|(id, pose, origin)| {
+                let mut m = marker_truth(*id, pose);
+                m["origin_px"] = serde_json::json!([origin.x, origin.y]);
+                m
+            })
+            .collect();
+        // Exactly the node's convention (src/processing.rs): aTb of the SI-scaled poses.
+        let a_from_b = poses[0]
+            .scaled(METRES_PER_UM)
+            .relative(&poses[1].scaled(METRES_PER_UM));
+        let t = a_from_b.translation.vector;
+        let (_, _, yaw) = a_from_b.rotation.euler_angles();
+        frames.push(serde_json::json!({
+            "file": file,
+            "markers": markers,
+            "relative": {
+                "a": id_a, "b": id_b,
+                "position_m": [t.x, t.y, t.z],
+                "yaw": yaw,
+            },
+        }));
+    }
+    Ok(frames)
+}
+
+fn run(args: &Args) -> Result<(), String> {
+    std::fs::create_dir_all(&args.out)
+        .map_err(|e| format!("cannot create {}: {e}", args.out.display()))?;
+    let truth = match args.kind {
+        Kind::Periodic => serde_json::json!({
+            "kind": "periodic",
+            "size": args.size,
+            "period": args.period,
+            "pixel_size": args.pixel_size,
+            "unit": "um",
+            "frames": periodic_frames(args)?,
+        }),
+        Kind::HpCode => serde_json::json!({
+            "kind": "hpcode",
+            "size": args.size,
+            "period": args.period,
+            "pixel_size": args.pixel_size,
+            "code_size": args.code_size,
+            "ids": [args.ids.0, args.ids.1],
+            "unit": "um",
+            "frames": hpcode_frames(args)?,
+        }),
+    };
     let text = serde_json::to_string_pretty(&truth).map_err(|e| e.to_string())?;
     std::fs::write(args.out.join("truth.json"), text)
         .map_err(|e| format!("cannot write truth.json: {e}"))

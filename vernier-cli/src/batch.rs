@@ -9,6 +9,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use vernier::{Detector, GreyImage};
 
 use crate::pose_table::{PoseRow, TableFormat, TableWriter};
+use crate::rerun_log::{FrameLog, RerunLog};
 
 /// Runs shorter than this many frames get no progress bar.
 const PROGRESS_MIN_FRAMES: u64 = 10;
@@ -36,10 +37,12 @@ fn modified_seconds(path: &Path) -> Option<f64> {
 
 /// Detects markers in every image, in order; each image is frame `i` of the series. Returns
 /// the number of images that failed (each reported on stderr, and as a row with `error`).
+/// With `rerun`, every readable image and its result are also logged there.
 pub fn detect_files(
     detector: &mut Detector,
     images: &[PathBuf],
     format: TableFormat,
+    mut rerun: Option<&mut RerunLog>,
 ) -> Result<usize, String> {
     let stdout = std::io::stdout().lock();
     let io_error = |e: std::io::Error| format!("cannot write the results: {e}");
@@ -48,10 +51,19 @@ pub fn detect_files(
     let mut failures = 0;
     for (frame, path) in images.iter().enumerate() {
         let start = Instant::now();
-        let result = GreyImage::open(path)
-            .and_then(|image| detector.detect(&image))
-            .map_err(|e| e.to_string());
+        let image = GreyImage::open(path).map_err(|e| e.to_string());
+        let result = image
+            .as_ref()
+            .map_err(Clone::clone)
+            .and_then(|image| detector.detect(image).map_err(|e| e.to_string()));
         let time_ms = start.elapsed().as_secs_f64() * 1e3;
+        if let (Some(log), Ok(image)) = (rerun.as_deref_mut(), &image) {
+            log.log_frame(&FrameLog {
+                frame: frame as u64,
+                image,
+                result: &result,
+            })?;
+        }
         if let Err(e) = &result {
             progress.suspend(|| eprintln!("vernier: {}: {e}", path.display()));
             failures += 1;

@@ -8,6 +8,7 @@ mod export_cmd;
 mod inputs;
 mod plot;
 mod pose_table;
+mod rerun_log;
 
 use clap::{Parser, Subcommand};
 use std::path::{Path, PathBuf};
@@ -81,6 +82,12 @@ struct DetectArgs {
     /// Dot polarity: `bright` dots on a dark background or `dark` dots on a bright one.
     #[arg(long, default_value = "bright")]
     polarity: Polarity,
+    /// Also log every frame to rerun (needs the `rerun` cargo feature): `spawn` a viewer,
+    /// `connect` to a running one (or give its `rerun+http://HOST:PORT/proxy` URL), or write a
+    /// `FILE.rrd`. Logs the image, markers and their axes, the spectrum with its lobes, the
+    /// wrapped phase and the pose time series.
+    #[arg(long, value_name = "TARGET")]
+    rerun: Option<rerun_log::RerunTarget>,
     /// Image files (PNG, JPEG, TIFF, PNM; 8/16-bit grey or colour), folders (their image
     /// files) or quoted glob patterns (`'run1/*.png'`, `'**/*.tif'`), in natural order.
     #[arg(required = true)]
@@ -182,7 +189,14 @@ fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
     let config = settings.to_config().map_err(|e| e.to_string())?;
     let mut detector = Detector::new(config).map_err(|e| e.to_string())?;
     let images = inputs::expand_inputs(&args.images)?;
-    let failures = batch::detect_files(&mut detector, &images, args.format)?;
+    let mut rerun = match &args.rerun {
+        Some(target) => Some(rerun_log::RerunLog::open(target, args.polarity)?),
+        None => None,
+    };
+    let failures = batch::detect_files(&mut detector, &images, args.format, rerun.as_mut())?;
+    if let Some(rerun) = rerun {
+        rerun.finish()?;
+    }
     Ok(if failures == 0 {
         ExitCode::SUCCESS
     } else {

@@ -8,15 +8,19 @@
 //! 4. [`refine`]: windowed Gauss–Newton refinement of both planes on the full image, which
 //!    removes the harmonic leakage of step 3 (default on).
 //!
+//! [`inspect`] adds display products (spectrum, wrapped phase) for viewers.
+//!
 //! Image frame of all results: `x = col − C div 2`, `y = row − R div 2`, pixels, y down.
 
 pub mod bandpass;
+pub mod inspect;
 pub mod lobes;
 pub mod plane;
 pub mod refine;
 pub mod spectrum;
 
 pub use bandpass::PhaseMap;
+pub use inspect::{PhaseInspection, SpectrumView};
 pub use lobes::Lobe;
 pub use plane::{fit_plane, wrap_angle, wrap_to_pi, PhasePlane};
 
