@@ -198,7 +198,7 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
         ParameterServices::create(&mut node, &fq_name, mapping_for_rmw(rmw.as_deref()))?;
     let spinner = node
         .spinner()
-        .map_err(|e| format!("cannot start the parameter services: {e:?}"))?;
+        .map_err(|e| format!("cannot start the ROS 2 spinner: {e:?}"))?;
     std::thread::Builder::new()
         .name("spinner".into())
         .spawn(move || {
