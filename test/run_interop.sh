@@ -1,24 +1,7 @@
 #!/usr/bin/env bash
 # Interoperability test of the detector node against Cyclone DDS (PyPI `cyclonedds`), no ROS
-# installation needed: builds the node and the frame renderer, installs the test tools into
-# the ignored `.venv/`, then runs test/test_interop.py inside a private network namespace
-# (loopback only, multicast routed on it) so that DDS discovery never leaves the machine.
-# Needs root (or user namespaces) for `unshare --net`.
+# installation needed: test/test_interop.py in a private network namespace (set-up, build
+# and isolation: test/run_in_netns.sh; needs root or user namespaces).
 set -euo pipefail
-
-root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-cd "$root"
-bash scripts/setup_test_tools.sh
-# VERNIER_ROS_PROFILE=test reuses what `cargo test` built (CI); default: release.
-profile="${VERNIER_ROS_PROFILE:-release}"
-cargo build --profile "$profile" -p vernier_ros --bins
-case "$profile" in dev | test) out=debug ;; *) out="$profile" ;; esac
-export VERNIER_ROS_BIN_DIR="${CARGO_TARGET_DIR:-$root/target}/$out"
-export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 200) + 1 ))}"
-exec unshare --net -- bash -c '
-    set -euo pipefail
-    ip link set lo up
-    ip link set lo multicast on
-    ip route add 224.0.0.0/4 dev lo
-    exec "$0" "$1"
-' "$root/.venv/bin/python" "$root/test/test_interop.py"
+exec bash "$(dirname "${BASH_SOURCE[0]}")/run_in_netns.sh" \
+    "$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)/test_interop.py"

@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Shared set-up of the DDS tests (test/run_interop.sh, test/run_bench.sh): installs the test
+# tools into the ignored `.venv/`, builds the node and the frame renderer, then runs the given
+# Python script (with its arguments) inside a private network namespace (loopback only,
+# multicast routed on it) so that DDS discovery never leaves the machine.
+# Needs root (or user namespaces) for `unshare --net`.
+#
+#   bash test/run_in_netns.sh SCRIPT.py [ARGS...]
+set -euo pipefail
+
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+bash scripts/setup_test_tools.sh
+# VERNIER_ROS_PROFILE=test reuses what `cargo test` built (CI); default: release.
+profile="${VERNIER_ROS_PROFILE:-release}"
+cargo build --profile "$profile" -p vernier_ros --bins
+case "$profile" in dev | test) out=debug ;; *) out="$profile" ;; esac
+export VERNIER_ROS_BIN_DIR="${CARGO_TARGET_DIR:-$root/target}/$out"
+export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 200) + 1 ))}"
+exec unshare --net -- bash -c '
+    set -euo pipefail
+    ip link set lo up
+    ip link set lo multicast on
+    ip route add 224.0.0.0/4 dev lo
+    exec "$0" "$@"
+' "$root/.venv/bin/python" "$@"
