@@ -8,23 +8,17 @@ Use these types on a participant of their own: they share DDS type names with th
 types of ros2_types.py."""
 
 import random
-import time
 from dataclasses import dataclass, field
 
-from cyclonedds.core import Policy, Qos
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl.types import float64, int64, sequence, uint8, uint64
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
-from cyclonedds.util import duration
 
 import ros2_types as t
+from harness import SERVICE_QOS, call_service, services_matched
 
-XCDR1 = Policy.DataRepresentation(use_cdrv0_representation=True)
-# rmw_qos_profile_services_default: reliable, volatile, keep last 10.
-SERVICE_QOS = Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(10),
-                  XCDR1)
 
 
 @dataclass
@@ -143,30 +137,14 @@ class CycloneParamClient:
             self.pairs[service] = (w, r)
 
     def wait_ready(self, timeout=20.0):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if all(w.get_matched_subscriptions() and r.get_matched_publications()
-                   for w, r in self.pairs.values()):
-                return True
-            time.sleep(0.1)
-        return False
+        return services_matched(self.pairs.values(), timeout)
 
     def call(self, service, timeout=30.0, **fields):
-        """Sends one request (re-sent every second with the same sequence number until answered:
-        the node's reply writer may still be matching our reader) and returns the reply whose
-        header carries our guid and that sequence number."""
+        """Sends one request (re-sent with the same sequence number until answered) and
+        returns the reply whose header carries our guid and that sequence number."""
         writer, reader = self.pairs[service]
-        req_type = SERVICES[service][0]
         self.seq += 1
-        request = req_type(guid=self.guid, seq=self.seq, **fields)
-        deadline = time.monotonic() + timeout
-        next_send = 0.0
-        while time.monotonic() < deadline:
-            if time.monotonic() >= next_send:
-                writer.write(request)
-                next_send = time.monotonic() + 1.0
-            for reply in reader.take(N=10):
-                if reply.guid == self.guid and reply.seq == self.seq:
-                    return reply
-            time.sleep(0.02)
-        raise AssertionError(f"no {service} reply for guid {self.guid:#x} seq {self.seq}")
+        request = SERVICES[service][0](guid=self.guid, seq=self.seq, **fields)
+        seq = self.seq
+        return call_service(writer, reader, request, timeout,
+                            accept=lambda reply: reply.guid == self.guid and reply.seq == seq)

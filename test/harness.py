@@ -37,6 +37,40 @@ RESULT_QOS = Qos(
     XCDR1,
 )
 
+# Services, as ROS 2's rmw_qos_profile_services_default: reliable, volatile, keep last 10.
+SERVICE_QOS = Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(10),
+                  XCDR1)
+
+
+def call_service(writer, reader, request, timeout, accept=lambda reply: True):
+    """Writes `request` and returns the first reply on `reader` that `accept`s.
+
+    Matching is asymmetric: our endpoints may be matched before the node's reply writer has
+    matched our reader, and a reply written before that is lost. get/set/list/describe are
+    idempotent, so the request is re-sent every second until a reply comes."""
+    reader.take(N=100)
+    deadline = time.monotonic() + timeout
+    next_send = 0.0
+    while time.monotonic() < deadline:
+        if time.monotonic() >= next_send:
+            writer.write(request)
+            next_send = time.monotonic() + 1.0
+        for reply in reader.take(N=10):
+            if accept(reply):
+                return reply
+        time.sleep(0.02)
+    raise AssertionError(f"no reply to {type(request).__name__} within {timeout} s")
+
+
+def services_matched(pairs, timeout):
+    """Waits until every (request writer, reply reader) pair is matched with the node's."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if all(w.get_matched_subscriptions() and r.get_matched_publications() for w, r in pairs):
+            return True
+        time.sleep(0.1)
+    return False
+
 
 def render_frames(out_dir, count, size=1024, period=10.0, pixel_size=0.8, seed=1,
                   kind="periodic", extra=()):
@@ -133,13 +167,10 @@ class ParamClient:
     identity is answered with its own sample identity, so a plain DDS writer/reader pair can
     call the service. (Cyclone's mapping: test/cyclone_params.py.)"""
 
-    SERVICE_QOS = Qos(Policy.Reliability.Reliable(duration(seconds=1)),
-                      Policy.History.KeepLast(10), XCDR1)
-
     def __init__(self, dp, node="/vernier_detector"):
         def pair(service, req, resp):
-            w = DataWriter(dp, Topic(dp, f"rq{node}/{service}Request", req), qos=self.SERVICE_QOS)
-            r = DataReader(dp, Topic(dp, f"rr{node}/{service}Reply", resp), qos=self.SERVICE_QOS)
+            w = DataWriter(dp, Topic(dp, f"rq{node}/{service}Request", req), qos=SERVICE_QOS)
+            r = DataReader(dp, Topic(dp, f"rr{node}/{service}Reply", resp), qos=SERVICE_QOS)
             return w, r
 
         self.set_w, self.set_r = pair("set_parameters", t.SetParametersRequest,
@@ -148,40 +179,15 @@ class ParamClient:
                                       t.GetParametersResponse)
 
     def wait_ready(self, timeout=20.0):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if all([self.set_w.get_matched_subscriptions(), self.set_r.get_matched_publications(),
-                    self.get_w.get_matched_subscriptions(), self.get_r.get_matched_publications()]):
-                return True
-            time.sleep(0.1)
-        return False
-
-    @staticmethod
-    def _call(writer, reader, request, timeout):
-        # Matching is asymmetric: our endpoints may be matched before the node's reply writer
-        # has matched our reader, and a reply written before that is lost. get/set are
-        # idempotent, so the request is re-sent every second until a reply comes.
-        reader.take(N=100)
-        deadline = time.monotonic() + timeout
-        next_send = 0.0
-        while time.monotonic() < deadline:
-            if time.monotonic() >= next_send:
-                writer.write(request)
-                next_send = time.monotonic() + 1.0
-            replies = reader.take(N=1)
-            if replies:
-                return replies[0]
-            time.sleep(0.02)
-        raise AssertionError(f"no reply to {type(request).__name__} within {timeout} s")
+        return services_matched([(self.set_w, self.set_r), (self.get_w, self.get_r)], timeout)
 
     def set(self, name, value, timeout=30.0):
         """Sets one parameter; `value` is a t.ParameterValue. Returns (successful, reason)."""
-        reply = self._call(self.set_w, self.set_r,
-                           t.SetParametersRequest(parameters=[t.Parameter(name=name, value=value)]),
-                           timeout)
+        request = t.SetParametersRequest(parameters=[t.Parameter(name=name, value=value)])
+        reply = call_service(self.set_w, self.set_r, request, timeout)
         result = reply.results[0]
         return result.successful, result.reason
 
     def get(self, name, timeout=30.0):
-        reply = self._call(self.get_w, self.get_r, t.GetParametersRequest(names=[name]), timeout)
+        reply = call_service(self.get_w, self.get_r, t.GetParametersRequest(names=[name]), timeout)
         return reply.values[0]
