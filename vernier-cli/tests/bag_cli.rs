@@ -3,8 +3,11 @@
 //! the MCAP output back (PoseStamped and MarkerPoseArray with their ros2msg schemas).
 //! Needs `.venv/` from `scripts/setup_test_tools.sh`.
 
+mod common;
+
+use common::{run as vernier, s, scratch};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 
 use vernier::layout::PeriodicLayout;
 use vernier::render::{render, RenderOptions};
@@ -36,17 +39,6 @@ fn python(script: &str, args: &[&Path]) -> String {
         String::from_utf8_lossy(&out.stderr)
     );
     String::from_utf8(out.stdout).unwrap()
-}
-
-fn vernier(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_vernier"))
-        .args(args)
-        .output()
-        .expect("cannot run vernier")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 /// The poses of the synthetic frames: µm and rad, 1 µm per pixel.
@@ -91,9 +83,7 @@ fn make_bag(dir: &Path) -> PathBuf {
 
 #[test]
 fn replays_a_rosbags_recording_to_mcap_and_csv() {
-    let dir = std::env::temp_dir().join(format!("vernier_bag_{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = scratch("bag");
     let bag = make_bag(&dir);
     let params = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../params/detector.yaml");
 
@@ -231,9 +221,7 @@ fn replays_a_rosbags_recording_to_mcap_and_csv() {
 
 #[test]
 fn bad_inputs_fail_with_one_line() {
-    let dir = std::env::temp_dir().join(format!("vernier_bag_bad_{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = scratch("bag_bad");
     std::fs::write(dir.join("old.db3"), b"").unwrap();
     let out = dir.join("o.csv");
     for (args, message) in [

@@ -1,25 +1,12 @@
 //! End-to-end tests of the `vernier` binary: render → detect round trip and error handling.
 
-use std::path::PathBuf;
-use std::process::Command;
+mod common;
 
-fn vernier() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_vernier"))
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("vernier-cli-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-fn example_pattern() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../examples/periodic_p15.json")
-}
+use common::{example_pattern, scratch, vernier};
 
 #[test]
 fn render_then_detect_round_trip_json_and_csv() {
-    let dir = temp_dir("roundtrip");
+    let dir = scratch("roundtrip");
     let image = dir.join("grid.png");
     let status = vernier()
         .args(["render", "--pattern"])
@@ -103,7 +90,7 @@ fn render_then_detect_round_trip_json_and_csv() {
 
 #[test]
 fn bad_input_gives_one_line_errors_and_failure_codes() {
-    let dir = temp_dir("errors");
+    let dir = scratch("errors");
     let bad_json = dir.join("bad.json");
     std::fs::write(&bad_json, "{ \"PeriodicPattern\": { \"period\": 15.0, ").unwrap();
     let empty_png = dir.join("empty.png");

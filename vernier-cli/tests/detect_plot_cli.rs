@@ -1,21 +1,14 @@
 //! `vernier detect` over a folder and a glob (pose table as CSV / JSON Lines), then
 //! `vernier plot` of the table.
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+mod common;
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("vernier_cli_{}_{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
+use common::{s, scratch};
+use std::process::Output;
 
+/// Runs `vernier args…`, asserting success.
 fn vernier(args: &[&str]) -> Output {
-    let out = Command::new(env!("CARGO_BIN_EXE_vernier"))
-        .args(args)
-        .output()
-        .expect("cannot run vernier");
+    let out = common::run(args);
     assert!(
         out.status.success(),
         "vernier {args:?} failed: {}",
@@ -32,10 +25,6 @@ fn column(csv: &str, name: &str) -> Vec<f64> {
     lines
         .filter_map(|l| l.split(',').nth(k).and_then(|v| v.parse().ok()))
         .collect()
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 #[test]
@@ -162,18 +151,12 @@ fn detect_folder_then_plot() {
 #[test]
 fn detect_rejects_empty_folder_and_plot_empty_table() {
     let dir = scratch("empty");
-    let out = Command::new(env!("CARGO_BIN_EXE_vernier"))
-        .args(["detect", "--period", "10", s(&dir)])
-        .output()
-        .unwrap();
+    let out = common::run(&["detect", "--period", "10", s(&dir)]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("holds no image"));
     let table = dir.join("t.csv");
     std::fs::write(&table, "frame,stamp,source,id,x,y\n0,,a.png,,,\n").unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_vernier"))
-        .args(["plot", s(&table), "-o", s(&dir.join("p.png"))])
-        .output()
-        .unwrap();
+    let out = common::run(&["plot", s(&table), "-o", s(&dir.join("p.png"))]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("no pose to plot"));
 }

@@ -1,25 +1,13 @@
 //! `vernier export` end to end: flags, file names, errors.
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+mod common;
+
+use common::{run as vernier, scratch};
+use std::path::Path;
 
 use vernier::export::{export_bytes, ExportFormat};
 use vernier::layout::{HpCodeLayout, MegarenaLayout, Rect};
 use vernier::pattern_file::Pattern;
-
-fn scratch(name: &str) -> PathBuf {
-    let dir =
-        std::env::temp_dir().join(format!("vernier_cli_export_{}_{name}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-fn vernier(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_vernier"))
-        .args(args)
-        .output()
-        .expect("cannot run vernier")
-}
 
 fn write(path: &Path, text: &str) -> String {
     std::fs::write(path, text).unwrap();

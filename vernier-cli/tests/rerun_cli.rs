@@ -1,22 +1,10 @@
 //! `vernier detect --rerun`: without the `rerun` feature the flag explains how to get it; with
 //! it, a run writes a recording (`cargo test -p vernier-cli --features rerun`).
 
+mod common;
+
+use common::{example_pattern, scratch, vernier};
 use std::path::PathBuf;
-use std::process::Command;
-
-fn vernier() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_vernier"))
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("vernier-rerun-{name}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-fn example_pattern() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../examples/periodic_p15.json")
-}
 
 /// Renders `count` frames of the example grid drifting by 0.1 µm per frame.
 fn render_frames(dir: &std::path::Path, count: usize) -> Vec<PathBuf> {
@@ -51,7 +39,7 @@ fn bad_target_is_a_usage_error() {
 #[cfg(not(feature = "rerun"))]
 #[test]
 fn without_the_feature_the_flag_says_how_to_rebuild() {
-    let dir = temp_dir("off");
+    let dir = scratch("rerun_off");
     let frames = render_frames(&dir, 1);
     let rrd = dir.join("run.rrd");
     let out = vernier()
@@ -71,7 +59,7 @@ fn without_the_feature_the_flag_says_how_to_rebuild() {
 #[cfg(feature = "rerun")]
 #[test]
 fn writes_a_recording_with_every_frame() {
-    let dir = temp_dir("on");
+    let dir = scratch("rerun_on");
     let frames = render_frames(&dir, 3);
     let rrd = dir.join("run.rrd");
     let out = vernier()

@@ -1,0 +1,33 @@
+//! Helpers shared by the `vernier` binary's end-to-end tests.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// The `vernier` binary under test, ready for arguments.
+pub fn vernier() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_vernier"))
+}
+
+/// Runs `vernier args…` and returns its output, whatever the exit status.
+pub fn run(args: &[&str]) -> Output {
+    vernier().args(args).output().expect("cannot run vernier")
+}
+
+/// A fresh, empty scratch folder for this test process and `name`.
+pub fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("vernier_cli_{}_{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// The bundled example pattern file (periodic grid, period 15 µm).
+pub fn example_pattern() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../examples/periodic_p15.json")
+}
+
+/// A path as a `&str` argument (test paths are UTF-8).
+pub fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
