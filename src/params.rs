@@ -68,8 +68,8 @@ pub fn specs() -> Vec<ParamSpec> {
         ),
         spec(
             "polarity",
-            V::String("bright".into()),
-            "Dot polarity: bright (bright dots on dark) or dark (dark dots on bright).",
+            V::String("auto".into()),
+            "Dot polarity: auto (per marker for HP codes and stamps, bright for periodic and Megarena), bright (bright dots on dark) or dark (dark dots on bright).",
         ),
         spec(
             "bitmaps",
@@ -247,9 +247,8 @@ impl NodeParams {
         let code_size = optional_count("code_size", 5, 1001)?;
         let code_depth = optional_count("code_depth", 4, 12)?;
         let window_size = optional_count("window_size", 8, 1 << 15)?;
-        let polarity: Polarity = string("polarity")?
-            .parse()
-            .map_err(|e: vernier::Error| e.to_string())?;
+        let polarity =
+            vernier::parse_polarity_setting(&string("polarity")?).map_err(|e| e.to_string())?;
         let bitmaps = strings("bitmaps")?;
         let marker_ids = match get("marker_ids") {
             ParameterValue::IntegerArray(ids) => ids

@@ -79,9 +79,10 @@ struct DetectArgs {
     /// and marker, time-series columns of vernier-cli/src/pose_table.rs).
     #[arg(long, value_enum, default_value = "json")]
     format: pose_table::TableFormat,
-    /// Dot polarity: `bright` dots on a dark background or `dark` dots on a bright one.
-    #[arg(long, default_value = "bright")]
-    polarity: Polarity,
+    /// Dot polarity: `auto` (default: found per marker for HP codes and stamps, bright for
+    /// periodic and Megarena), `bright` dots on a dark background or `dark` dots on a bright one.
+    #[arg(long, default_value = "auto")]
+    polarity: PolarityArg,
     /// Also log every frame to rerun (needs the `rerun` cargo feature): `spawn` a viewer,
     /// `connect` to a running one (or give its `rerun+http://HOST:PORT/proxy` URL), or write a
     /// `FILE.rrd`. Logs the image, markers and their axes, the spectrum with its lobes, the
@@ -183,14 +184,17 @@ fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
         code_size: args.code_size,
         code_depth: args.code_depth,
         window_size: args.window_size,
-        polarity: args.polarity,
+        polarity: args.polarity.0,
         bitmaps: args.bitmap.clone(),
     };
     let config = settings.to_config().map_err(|e| e.to_string())?;
     let mut detector = Detector::new(config).map_err(|e| e.to_string())?;
     let images = inputs::expand_inputs(&args.images)?;
     let mut rerun = match &args.rerun {
-        Some(target) => Some(rerun_log::RerunLog::open(target, args.polarity)?),
+        Some(target) => Some(rerun_log::RerunLog::open(
+            target,
+            args.polarity.0.unwrap_or_default(),
+        )?),
         None => None,
     };
     let failures = batch::detect_files(&mut detector, &images, args.format, rerun.as_mut())?;
@@ -252,4 +256,17 @@ fn render_image(args: &RenderArgs) -> Result<ExitCode, String> {
         .save_png(&args.output, args.bits)
         .map_err(|e| e.to_string())?;
     Ok(ExitCode::SUCCESS)
+}
+
+/// `--polarity auto|bright|dark` (`auto` = `None`).
+#[derive(Clone, Copy, Debug)]
+struct PolarityArg(Option<Polarity>);
+
+impl std::str::FromStr for PolarityArg {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        vernier::parse_polarity_setting(s)
+            .map(PolarityArg)
+            .map_err(|e| e.to_string())
+    }
 }

@@ -107,8 +107,9 @@ pub struct DetectorSettings {
     pub code_depth: Option<u32>,
     /// Side of the square window analysed around each marker, pixels (HP code, stamp).
     pub window_size: Option<usize>,
-    /// Dot polarity.
-    pub polarity: crate::grey_image::Polarity,
+    /// Dot polarity; `None` (default): found per marker (HP code, stamp), bright dots for
+    /// the full-image types (periodic, Megarena).
+    pub polarity: Option<crate::grey_image::Polarity>,
     /// Stamp bitmaps (PNG files, 1 = dot), in ID order.
     pub bitmaps: Vec<std::path::PathBuf>,
 }
@@ -144,7 +145,7 @@ impl DetectorSettings {
         match kind {
             MarkerKind::Periodic => {
                 let mut p = PeriodicParams::new(require_period()?);
-                p.polarity = self.polarity;
+                p.polarity = self.polarity.unwrap_or_default();
                 Ok(DetectorConfig::Periodic(p))
             }
             MarkerKind::Megarena => {
@@ -161,7 +162,7 @@ impl DetectorSettings {
                     }
                 };
                 let mut p = MegarenaParams::with_sequence(require_period()?, sequence);
-                p.polarity = self.polarity;
+                p.polarity = self.polarity.unwrap_or_default();
                 Ok(DetectorConfig::Megarena(p))
             }
             MarkerKind::HpCode => {
@@ -178,7 +179,7 @@ impl DetectorSettings {
                 };
                 let mut p = HpCodeParams::new(require_period()?, half_periods);
                 p.window_size = self.window_size;
-                p.polarity = Some(self.polarity);
+                p.polarity = self.polarity;
                 p.validate()?;
                 Ok(DetectorConfig::HpCode(p))
             }

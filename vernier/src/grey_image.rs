@@ -34,6 +34,20 @@ impl std::str::FromStr for Polarity {
     }
 }
 
+/// Parses a polarity setting as users type it: `auto` (`None`: found per marker where the
+/// marker type can, bright dots otherwise), `bright` or `dark`.
+pub fn parse_polarity_setting(s: &str) -> Result<Option<Polarity>> {
+    match s {
+        "auto" | "" => Ok(None),
+        other => other.parse().map(Some).map_err(|_| {
+            Error::parameter(
+                "polarity",
+                format!("expected `auto`, `bright` or `dark`, got `{other}`"),
+            )
+        }),
+    }
+}
+
 /// Pixel layout of a raw buffer (the ROS `sensor_msgs/Image` encodings the library reads).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum PixelFormat {

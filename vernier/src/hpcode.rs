@@ -26,7 +26,7 @@ pub mod grouping;
 pub(crate) mod marker_id;
 
 pub use finders::Finder;
-pub use grouping::{group_finders, FinderTriple};
+pub use grouping::{group_finders, pair_hypotheses, FinderTriple};
 
 use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
@@ -35,6 +35,12 @@ use crate::pose::{rotate2, Pose};
 use finders::FinderScanner;
 use nalgebra::Vector2;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
+
+/// Most two-finder hypotheses tried per image (each costs one window analysis).
+const MAX_HYPOTHESES: usize = 24;
+/// Smallest fraction of the marker's dots and gaps that must look right
+/// ([`marker_id::grid_support`]); dust and hair may spoil the rest.
+const MIN_GRID_SUPPORT: f64 = 0.75;
 
 /// Smallest analysis window side, pixels.
 const MIN_WINDOW: usize = 32;
@@ -70,10 +76,14 @@ pub struct HpCodeParams {
     /// Dot polarity. `None` (default) takes each marker's polarity from its finder squares;
     /// `Some(p)` only accepts markers of polarity `p`.
     pub polarity: Option<Polarity>,
-    /// Minimum central difference `|v[i+1] − v[i−1]|` of a finder edge, intensity units
-    /// (`[0, 1]` images). `None` (default) chooses it per image: the larger of 5 robust
-    /// noise deviations and 10 % of the strong edges (99.9th percentile), at least 0.01.
-    pub edge_threshold: Option<f64>,
+    /// Smallest local contrast (max − min over a neighbourhood) that the finder search
+    /// binarises, intensity units (`[0, 1]` images). `None` (default) chooses it per image:
+    /// 6 noise standard deviations (measured in the quietest blocks), at least 0.015.
+    pub min_contrast: Option<f64>,
+    /// Markers whose ID is read with a confidence below this are dropped (`[0, 1]`, the
+    /// smallest margin of an ID dot to the present/absent threshold in half contrasts).
+    /// Default 0.2 (a dot level 10 % of the contrast away from the threshold).
+    pub min_id_confidence: f64,
     /// Phase-engine settings used on each window.
     pub phase: PhaseParams,
     /// How orientation, pixel size and position follow from the two planes.
@@ -107,7 +117,8 @@ impl HpCodeParams {
             window_size: None,
             apodize: None,
             polarity: None,
-            edge_threshold: None,
+            min_contrast: None,
+            min_id_confidence: 0.2,
             phase: PhaseParams::default(),
             pose_formula: PoseFormula::Symmetric,
         }
@@ -153,13 +164,19 @@ impl HpCodeParams {
                 ));
             }
         }
-        if let Some(t) = self.edge_threshold {
-            if !(t.is_finite() && t > 0.0) {
+        if let Some(t) = self.min_contrast {
+            if !(t.is_finite() && t > 0.0 && t < 1.0) {
                 return Err(Error::parameter(
-                    "edge_threshold",
-                    format!("must be > 0, got {t}"),
+                    "min_contrast",
+                    format!("must be in (0, 1), got {t}"),
                 ));
             }
+        }
+        if !(0.0..=1.0).contains(&self.min_id_confidence) {
+            return Err(Error::parameter(
+                "min_id_confidence",
+                format!("must be in [0, 1], got {}", self.min_id_confidence),
+            ));
         }
         self.phase.validate()
     }
@@ -222,7 +239,7 @@ impl HpCodeDetector {
 
     /// Finder squares of `image` (step 1 only), filtered by the polarity setting.
     pub fn find_finders(&mut self, image: &GreyImage) -> Vec<Finder> {
-        let mut finders = self.scanner.find(image, self.params.edge_threshold);
+        let mut finders = self.scanner.find(image, self.params.min_contrast);
         if let Some(p) = self.params.polarity {
             finders.retain(|f| f.polarity == p);
         }
@@ -234,9 +251,28 @@ impl HpCodeDetector {
     pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<HpCodeMarker>> {
         let finders = self.find_finders(image);
         let triples = group_finders(&finders, self.params.half_periods);
-        let mut markers = Vec::with_capacity(triples.len());
+        let mut markers: Vec<HpCodeMarker> = Vec::with_capacity(triples.len());
         for triple in &triples {
             if let Some(m) = self.measure(image, triple)? {
+                markers.push(m);
+            }
+        }
+        // Markers with a finder missing (dust, damage): hypotheses from the finders left over,
+        // each kept only when its grid and ID confirm it.
+        let used: Vec<bool> = finders
+            .iter()
+            .map(|f| markers.iter().any(|m| m.finders.uses(f)))
+            .collect();
+        for triple in pair_hypotheses(&finders, self.params.half_periods, &used, MAX_HYPOTHESES) {
+            let coarse = triple.center();
+            let module = triple.module_px;
+            if markers
+                .iter()
+                .any(|m| (m.origin_px - coarse).norm() < 4.0 * module)
+            {
+                continue;
+            }
+            if let Some(m) = self.measure(image, &triple)? {
                 markers.push(m);
             }
         }
@@ -322,6 +358,10 @@ impl HpCodeDetector {
         let Some(reading) = marker_id::read_id(image, triple.polarity, &grid.dots) else {
             return Ok(None);
         };
+        // An uncertain ID is never reported as a marker.
+        if reading.confidence < self.params.min_id_confidence {
+            return Ok(None);
+        }
         let (finders, grid) = if reading.mirrored {
             let mirrored = triple.mirrored();
             match fine::locate(&analysis.planes, &mirrored, window_center) {
@@ -331,6 +371,10 @@ impl HpCodeDetector {
         } else {
             (*triple, grid)
         };
+        // Three finder-like shapes around something that is not this marker's dot grid.
+        if marker_id::grid_support(image, triple.polarity, &grid.dots) < MIN_GRID_SUPPORT {
+            return Ok(None);
+        }
         let (icx, icy) = image.center();
         let image_center = Vector2::new(icx as f64, icy as f64);
         let pose = self.pose(

@@ -2,6 +2,7 @@
 //!
 //! Sub-pixel pose measurement of micro-fabricated periodic dot markers in microscope images
 //! (a Rust successor of the VERNIER method, FEMTO-ST).
+pub mod binarize;
 pub mod error;
 pub mod layout;
 pub use error::{Error, Result};
@@ -9,7 +10,7 @@ pub mod grey_image;
 pub mod megarena_sequence;
 pub mod pattern_file;
 pub mod phase;
-pub use grey_image::{GreyImage, PixelFormat, Polarity};
+pub use grey_image::{parse_polarity_setting, GreyImage, PixelFormat, Polarity};
 pub use phase::{PhaseAnalysis, PhaseEngine, PhaseParams, PhasePlane, Refinement};
 pub mod pose;
 pub mod render;

@@ -112,8 +112,10 @@ pub fn parse_params(text: &str) -> Result<ReplayParams, String> {
             "code_depth" => s.code_depth = count()?.map(|v| v as u32),
             "window_size" => s.window_size = count()?.map(|v| v as usize),
             "polarity" => {
-                let text = value.as_str().ok_or_else(|| wrong("`bright` or `dark`"))?;
-                s.polarity = text.parse().map_err(|e: vernier::Error| e.to_string())?;
+                let text = value
+                    .as_str()
+                    .ok_or_else(|| wrong("`auto`, `bright` or `dark`"))?;
+                s.polarity = vernier::parse_polarity_setting(text).map_err(|e| e.to_string())?;
             }
             "bitmaps" => {
                 let list = value.as_vec().ok_or_else(|| wrong("a list of files"))?;

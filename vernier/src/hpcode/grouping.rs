@@ -16,15 +16,15 @@ use crate::grey_image::Polarity;
 use nalgebra::Vector2;
 
 /// Largest relative difference of the two legs.
-const LEG_TOLERANCE: f64 = 0.1;
-/// Largest `|cos|` of the corner angle (≈ 90° ± 8.6°).
-const MAX_CORNER_COS: f64 = 0.15;
+const LEG_TOLERANCE: f64 = 0.2;
+/// Largest `|cos|` of the corner angle (≈ 90° ± 14°: markers tilted by up to ~30°).
+const MAX_CORNER_COS: f64 = 0.25;
 /// Largest relative error of a leg length in modules (finder sizes are measured to a few %).
-const SCALE_TOLERANCE: f64 = 0.1;
+const SCALE_TOLERANCE: f64 = 0.15;
 /// Accepted marker widths: nominal `W` ± this many half-period cells.
 pub const WIDTH_SLACK: usize = 8;
-/// Largest relative deviation of a finder's size from the triple's mean.
-const SIZE_TOLERANCE: f64 = 0.2;
+/// Largest relative deviation of a finder's module from the triple's mean.
+const SIZE_TOLERANCE: f64 = 0.25;
 
 /// Three finders forming a marker, as assigned from their geometry alone.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -49,6 +49,39 @@ impl FinderTriple {
         (self.right + self.bottom) / 2.0
     }
 
+    /// The triple with `corner` at the right angle and `p`, `q` the two others, assigned so
+    /// that `bottom` is 90° clockwise on screen from `right`.
+    pub fn with_corner(
+        corner: Vector2<f64>,
+        p: Vector2<f64>,
+        q: Vector2<f64>,
+        module_px: f64,
+        polarity: Polarity,
+        misfit: f64,
+    ) -> FinderTriple {
+        let (u, v) = (p - corner, q - corner);
+        let (right, bottom) = if u.x * v.y - u.y * v.x >= 0.0 {
+            (p, q)
+        } else {
+            (q, p)
+        };
+        FinderTriple {
+            corner,
+            right,
+            bottom,
+            module_px,
+            polarity,
+            misfit,
+        }
+    }
+
+    /// Whether `finder` is one of the three (within one module).
+    pub fn uses(&self, finder: &Finder) -> bool {
+        [self.corner, self.right, self.bottom]
+            .iter()
+            .any(|p| (p - finder.center).norm() < self.module_px.max(finder.module_px))
+    }
+
     /// `right` and `bottom` swapped: the reading of a mirrored marker (seen from its back).
     pub fn mirrored(&self) -> FinderTriple {
         FinderTriple {
@@ -68,10 +101,10 @@ pub fn group_finders(finders: &[Finder], half_periods: usize) -> Vec<FinderTripl
     let n = finders.len();
     let mut near = Vec::new();
     for a in 0..n {
-        // Legs are (W − 7) modules; a chord is 7 to 7·√2 modules.
-        let chord = finders[a].chord;
-        let max_leg = legs.max * chord / 7.0 * 1.25;
-        let min_leg = legs.min * chord / (7.0 * std::f64::consts::SQRT_2) * 0.75;
+        // Legs are (W − 7) modules.
+        let module = finders[a].module_px;
+        let max_leg = legs.max * module * (1.0 + SIZE_TOLERANCE);
+        let min_leg = legs.min * module * (1.0 - SIZE_TOLERANCE);
         near.clear();
         near.extend((0..n).filter(|&b| {
             let d = (finders[b].center - finders[a].center).norm();
@@ -98,6 +131,62 @@ pub fn group_finders(finders: &[Finder], half_periods: usize) -> Vec<FinderTripl
         kept.push(t);
     }
     kept
+}
+
+/// Marker hypotheses from two finders where the third is missing (covered by dust, broken,
+/// outside the finder test): for two finders one leg apart, the third on either side of
+/// either; for two finders one diagonal apart, the corner on either side. Only finders not
+/// flagged in `used`; at most `limit` hypotheses, best-matched finder sizes first. Each must be
+/// confirmed by the marker's grid and ID before it becomes a marker.
+pub fn pair_hypotheses(
+    finders: &[Finder],
+    half_periods: usize,
+    used: &[bool],
+    limit: usize,
+) -> Vec<FinderTriple> {
+    let legs = LegRange::new(half_periods);
+    let mut out = Vec::new();
+    for a in 0..finders.len() {
+        for b in a + 1..finders.len() {
+            let (fa, fb) = (&finders[a], &finders[b]);
+            if used[a] || used[b] || fa.polarity != fb.polarity {
+                continue;
+            }
+            let module = 0.5 * (fa.module_px + fb.module_px);
+            if (fa.module_px - fb.module_px).abs() > SIZE_TOLERANCE * module {
+                continue;
+            }
+            let misfit = 1.0 + ((fa.module_px - fb.module_px) / module).powi(2);
+            let u = fb.center - fa.center;
+            let perp = Vector2::new(-u.y, u.x);
+            let leg = u.norm() / module;
+            let mut push = |corner: Vector2<f64>, p: Vector2<f64>, q: Vector2<f64>| {
+                out.push(FinderTriple::with_corner(
+                    corner,
+                    p,
+                    q,
+                    module,
+                    fa.polarity,
+                    misfit,
+                ));
+            };
+            if (legs.min..=legs.max).contains(&leg) {
+                for s in [1.0, -1.0] {
+                    push(fa.center, fb.center, fa.center + perp * s);
+                    push(fb.center, fa.center, fb.center + perp * s);
+                }
+            }
+            if (legs.min..=legs.max).contains(&(leg / std::f64::consts::SQRT_2)) {
+                let mid = (fa.center + fb.center) / 2.0;
+                for s in [0.5, -0.5] {
+                    push(mid + perp * s, fa.center, fb.center);
+                }
+            }
+        }
+    }
+    out.sort_by(|x, y| x.misfit.total_cmp(&y.misfit));
+    out.truncate(limit);
+    out
 }
 
 /// Accepted leg lengths in modules, with tolerance, and the nominal one.
@@ -135,37 +224,28 @@ fn check_triple(a: &Finder, b: &Finder, c: &Finder, legs: &LegRange) -> Option<F
     if leg_misfit > LEG_TOLERANCE || cos.abs() > MAX_CORNER_COS {
         return None;
     }
-    // Scan chords are 7 modules / cos θ, θ = marker rotation folded into [0, π/4].
-    let theta = u.y.atan2(u.x).rem_euclid(std::f64::consts::FRAC_PI_2);
-    let fold = theta.min(std::f64::consts::FRAC_PI_2 - theta).cos();
-    let chords = [a.chord, b.chord, c.chord];
-    let mean_chord = chords.iter().sum::<f64>() / 3.0;
-    if chords
+    let modules = [a.module_px, b.module_px, c.module_px];
+    let module_px = modules.iter().sum::<f64>() / 3.0;
+    if modules
         .iter()
-        .any(|&ch| (ch - mean_chord).abs() > SIZE_TOLERANCE * mean_chord)
+        .any(|&m| (m - module_px).abs() > SIZE_TOLERANCE * module_px)
     {
         return None;
     }
-    let module_px = mean_chord * fold / 7.0;
     let leg_modules = leg / module_px;
     if !(legs.min..=legs.max).contains(&leg_modules) {
         return None;
     }
     // Ranking prefers the nominal width, mildly.
     let scale_misfit = 0.1 * (leg_modules / legs.nominal).ln();
-    let (right, bottom) = if u.x * v.y - u.y * v.x >= 0.0 {
-        (b.center, c.center)
-    } else {
-        (c.center, b.center)
-    };
-    Some(FinderTriple {
-        corner: a.center,
-        right,
-        bottom,
+    Some(FinderTriple::with_corner(
+        a.center,
+        b.center,
+        c.center,
         module_px,
-        polarity: a.polarity,
-        misfit: leg_misfit.powi(2) + cos.powi(2) + scale_misfit.powi(2),
-    })
+        a.polarity,
+        leg_misfit.powi(2) + cos.powi(2) + scale_misfit.powi(2),
+    ))
 }
 
 #[cfg(test)]
@@ -175,10 +255,9 @@ mod tests {
     fn finder(x: f64, y: f64, chord: f64) -> Finder {
         Finder {
             center: Vector2::new(x, y),
-            chord,
+            module_px: chord / 7.0,
             polarity: Polarity::BrightDots,
-            row_hits: 5,
-            col_hits: 5,
+            score: 1.0,
         }
     }
 

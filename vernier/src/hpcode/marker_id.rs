@@ -40,6 +40,9 @@ pub(crate) struct EdgeBits {
     /// Smallest distance of a dot's level to the threshold, in units of half the contrast
     /// (1 = perfectly clean, 0 = undecidable), clamped to `[0, 1]`.
     pub margin: f64,
+    /// Smallest signed distance of a dot's level above the threshold, half contrasts: > 0
+    /// when every dot of the edge is present, the more so the larger.
+    pub completeness: f64,
 }
 
 impl EdgeBits {
@@ -51,9 +54,6 @@ impl EdgeBits {
             .filter(|(_, &b)| b)
             .map(|(k, _)| 1u64 << k)
             .sum()
-    }
-    fn any(&self) -> bool {
-        self.bits.iter().any(|&b| b)
     }
 }
 
@@ -79,23 +79,22 @@ pub(crate) fn read_id(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> 
     // Top row: ID dots (0, n−5−k); present references (1, c); background between them.
     let top = read_edge(image, polarity, grid, false)?;
     let left = read_edge(image, polarity, grid, true)?;
-    let confidence = top.margin.min(left.margin);
-    Some(match (top.any(), left.any()) {
-        (false, true) => IdReading {
-            id: left.value(),
-            mirrored: true,
-            confidence,
-        },
-        (true, true) => IdReading {
-            id: top.value(),
-            mirrored: false,
-            confidence: 0.0,
-        },
-        _ => IdReading {
-            id: top.value(),
-            mirrored: false,
-            confidence,
-        },
+    // Seen from the front the left column is complete and the top row holds the ID; mirrored,
+    // the other way round. The edge that is more clearly complete decides (a dot spoiled by
+    // dust or hair then costs confidence instead of flipping the marker).
+    let mirrored = top.completeness > left.completeness;
+    let (id_edge, complete_edge) = if mirrored {
+        (&left, &top)
+    } else {
+        (&top, &left)
+    };
+    let confidence = id_edge
+        .margin
+        .min(complete_edge.completeness.clamp(0.0, 1.0));
+    Some(IdReading {
+        id: id_edge.value(),
+        mirrored,
+        confidence,
     })
 }
 
@@ -139,11 +138,68 @@ fn read_edge(
         .iter()
         .map(|&v| ((v - threshold).abs() / half_contrast).min(1.0))
         .fold(1.0f64, f64::min);
-    Some(EdgeBits { bits, margin })
+    let completeness = levels
+        .iter()
+        .map(|&v| (v - threshold) / half_contrast)
+        .fold(f64::INFINITY, f64::min);
+    Some(EdgeBits {
+        bits,
+        margin,
+        completeness,
+    })
 }
 
-/// Mean material level (1 = dot) around image point `p`: five bilinear samples, the centre and
-/// ±0.15 period along both grid axes. `None` outside the image.
+/// Fraction of the marker's grid that looks as it should, `[0, 1]`: every dot outside the
+/// finders and the two ID edges present, every gap between four dots empty, both against the
+/// threshold halfway between their medians. 0 when the dots are not brighter than the gaps or a
+/// sample falls outside the image. The check that a finder triple encloses a real dot grid
+/// (clutter that happens to look like three finders does not), tolerant of dust and hair over
+/// a part of the marker.
+pub(crate) fn grid_support(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> f64 {
+    let n = grid.size;
+    if n < 9 {
+        return 0.0;
+    }
+    // Dot (r, c) lies in a finder's 4×4 dots at three corners.
+    let in_finder =
+        |r: usize, c: usize| (r < 4 && c < 4) || (r < 4 && c + 4 >= n) || (r + 4 >= n && c < 4);
+    let mut dots = Vec::with_capacity(n * n);
+    let mut gaps = Vec::with_capacity(n * n);
+    for r in 1..n {
+        for c in 1..n {
+            if !in_finder(r, c) {
+                let Some(v) = dot_level(image, polarity, grid.at(r as f64, c as f64), grid) else {
+                    return 0.0;
+                };
+                dots.push(v);
+            }
+            // The gap up-left of dot (r, c), between four dots of which none is in a finder.
+            if !(in_finder(r - 1, c - 1)
+                || in_finder(r, c)
+                || in_finder(r - 1, c)
+                || in_finder(r, c - 1))
+            {
+                let p = grid.at(r as f64 - 0.5, c as f64 - 0.5);
+                let Some(v) = dot_level(image, polarity, p, grid) else {
+                    return 0.0;
+                };
+                gaps.push(v);
+            }
+        }
+    }
+    let (hi, lo) = (median(&mut dots.clone()), median(&mut gaps.clone()));
+    if !(hi > lo) {
+        return 0.0;
+    }
+    let threshold = 0.5 * (hi + lo);
+    let good = dots.iter().filter(|&&v| v > threshold).count()
+        + gaps.iter().filter(|&&v| v < threshold).count();
+    good as f64 / (dots.len() + gaps.len()) as f64
+}
+
+/// Material level (1 = dot) around image point `p`: the median of nine bilinear samples on a
+/// 3×3 grid ±0.15 period along the grid axes, so that a thin hair or scratch over part of a dot
+/// does not change it. `None` outside the image.
 fn dot_level(
     image: &GreyImage,
     polarity: Polarity,
@@ -151,11 +207,12 @@ fn dot_level(
     grid: &DotGrid,
 ) -> Option<f64> {
     let (dx, dy) = (grid.step_x * 0.15, grid.step_y * 0.15);
-    let mut sum = 0.0;
-    for q in [p, p + dx, p - dx, p + dy, p - dy] {
-        sum += bilinear(image, q.x, q.y)?;
+    let mut samples = [0.0f64; 9];
+    for (k, s) in samples.iter_mut().enumerate() {
+        let q = p + dx * (k % 3) as f64 - dx + dy * (k / 3) as f64 - dy;
+        *s = bilinear(image, q.x, q.y)?;
     }
-    let v = sum / 5.0;
+    let v = median(&mut samples);
     Some(match polarity {
         Polarity::BrightDots => v,
         Polarity::DarkDots => 1.0 - v,

@@ -43,7 +43,6 @@ use crate::snapshot::Snapshot;
 use matching::{best_match, Match, SearchRange, Template};
 use nalgebra::Vector2;
 use quads::QuadFinder;
-use std::borrow::Cow;
 use std::f64::consts::{PI, TAU};
 
 /// How markers are searched for.
@@ -71,8 +70,10 @@ pub struct StampParams {
     /// Side of the square window analysed around each framed marker, pixels. Default `None`:
     /// the largest `2^a·3^b` that fits in the dot field inside the frame.
     pub window_size: Option<usize>,
-    /// Dot polarity of the images (dark-dot images are inverted first).
-    pub polarity: Polarity,
+    /// Dot polarity. `None` (default): frames of both polarities are searched and each
+    /// marker is measured in its own (a stamp brighter or darker than its surroundings);
+    /// `Some(p)` only accepts markers of polarity `p` (dark-dot images are inverted first).
+    pub polarity: Option<Polarity>,
     /// Framed or full-image search.
     pub search: StampSearch,
     /// Frame (quadrilateral) search settings.
@@ -103,7 +104,7 @@ impl StampParams {
             period,
             bitmaps,
             window_size: None,
-            polarity: Polarity::BrightDots,
+            polarity: None,
             search: StampSearch::Auto,
             quads: QuadParams::default(),
             apodization_exponent: 4.0,
@@ -234,6 +235,8 @@ pub struct StampDetection {
     pub decode_confidence: f64,
     /// The frame outline, for framed markers.
     pub frame: Option<Quad>,
+    /// Polarity the marker was measured in (the setting's, or found from its frame).
+    pub polarity: Polarity,
     /// Image pixel `(col, row)` at the centre of the analysed window.
     pub window_center: (i64, i64),
     /// Side of the analysed square window, pixels (the image size for full-image search).
@@ -300,36 +303,66 @@ impl StampDetector {
     /// Full-image search: one marker, or [`Error::PatternNotFound`] when the grid or the bitmap
     /// is not recognised.
     pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<StampDetection>> {
-        let image = self.bright_dots(image);
         match self.mode {
-            StampSearch::FullImage => self.measure_full(&image).map(|d| vec![d]),
+            StampSearch::FullImage => {
+                let image = image.as_bright_dots(self.params.polarity.unwrap_or_default());
+                self.measure_full(&image).map(|d| vec![d])
+            }
             _ => {
-                let quads = self.finder.find(&image, &self.params.quads);
                 let mut found: Vec<StampDetection> = Vec::new();
-                for quad in quads {
-                    // Outermost only: a candidate inside an accepted frame is part of it.
-                    let c = quad.center();
-                    if found
-                        .iter()
-                        .filter_map(|d| d.frame.as_ref())
-                        .any(|f| f.contains(c))
-                    {
-                        continue;
-                    }
-                    if let Some(d) = self.measure_framed(&image, quad)? {
-                        found.push(d);
-                    }
+                for polarity in self.polarities() {
+                    let image = image.as_bright_dots(polarity);
+                    self.detect_framed(&image, polarity, &mut found)?;
                 }
                 Ok(found)
             }
         }
     }
 
+    /// The polarities searched: the setting's, or both.
+    fn polarities(&self) -> Vec<Polarity> {
+        match self.params.polarity {
+            Some(p) => vec![p],
+            None => vec![Polarity::BrightDots, Polarity::DarkDots],
+        }
+    }
+
+    /// Framed markers of one polarity (`image` already made bright-dot), appended to `found`
+    /// unless inside a frame already accepted.
+    fn detect_framed(
+        &mut self,
+        image: &GreyImage,
+        polarity: Polarity,
+        found: &mut Vec<StampDetection>,
+    ) -> Result<()> {
+        let quads = self.finder.find(image, &self.params.quads);
+        for quad in quads {
+            // Outermost only: a candidate inside an accepted frame is part of it.
+            let c = quad.center();
+            if found
+                .iter()
+                .filter_map(|d| d.frame.as_ref())
+                .any(|f| f.contains(c))
+            {
+                continue;
+            }
+            if let Some(mut d) = self.measure_framed(image, quad)? {
+                d.polarity = polarity;
+                found.push(d);
+            }
+        }
+        Ok(())
+    }
+
     /// Quadrilateral outlines (frame candidates) of `image`, largest first, before any check
     /// against the bitmaps (for display and diagnostics).
     pub fn find_frames(&mut self, image: &GreyImage) -> Vec<Quad> {
-        let image = self.bright_dots(image);
-        self.finder.find(&image, &self.params.quads)
+        let mut quads = Vec::new();
+        for polarity in self.polarities() {
+            let image = image.as_bright_dots(polarity);
+            quads.extend(self.finder.find(&image, &self.params.quads));
+        }
+        quads
     }
 
     /// Measures a marker whose central dot is near the image pixel `center` (within
@@ -355,15 +388,14 @@ impl StampDetector {
         if !(-reach..w + reach).contains(&center.0) || !(-reach..h + reach).contains(&center.1) {
             return Ok(None);
         }
-        let image = self.bright_dots(image);
-        self.measure_window(&image, center, size, None)
-    }
-
-    fn bright_dots<'a>(&self, image: &'a GreyImage) -> Cow<'a, GreyImage> {
-        match self.params.polarity {
-            Polarity::BrightDots => Cow::Borrowed(image),
-            Polarity::DarkDots => Cow::Owned(image.inverted()),
+        for polarity in self.polarities() {
+            let image = image.as_bright_dots(polarity);
+            if let Some(mut d) = self.measure_window(&image, center, size, None)? {
+                d.polarity = polarity;
+                return Ok(Some(d));
+            }
         }
+        Ok(None)
     }
 
     /// A framed candidate: window at the frame centre, sized to the dot field.
@@ -600,6 +632,7 @@ impl StampDetector {
             correlation: found.correlation,
             decode_confidence,
             frame,
+            polarity: self.params.polarity.unwrap_or_default(),
             window_center,
             window_size,
             analysis,
