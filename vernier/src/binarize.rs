@@ -6,7 +6,8 @@
 //! 1. **Local threshold** ([`ThresholdMap`]): the image is cut into 8×8 blocks, each keeps its
 //!    minimum and maximum. For every block, neighbourhoods of 3, 5, 9, … 129 blocks (24 to
 //!    1032 px) are tried from the smallest; the first whose range (max − min) exceeds the
-//!    *contrast floor* gives the threshold, the mid-range. The floor is a multiple of the
+//!    *contrast floor* gives the threshold, the mid-range or another level of that range
+//!    ([`ThresholdMap::set_level`]: a multi-threshold scan). The floor is a multiple of the
 //!    image's noise, estimated from the quietest blocks, so the threshold follows the
 //!    structure of the scale at hand (a dot grid, a large uniform finder centre) and uneven
 //!    illumination, while flat noisy areas stay one region. The block thresholds are smoothed
@@ -36,7 +37,11 @@ pub struct ThresholdMap {
     blocks: (usize, usize),
     min: Vec<f32>,
     max: Vec<f32>,
-    /// Threshold of each block (`+∞` where no neighbourhood has contrast: all dark).
+    /// Local minimum and range of each block's chosen neighbourhood (smoothed; `+∞` minimum
+    /// where no neighbourhood has contrast: the block is all dark at any level).
+    low: Vec<f32>,
+    range: Vec<f32>,
+    /// Thresholds at the level of the last [`ThresholdMap::set_level`].
     threshold: Vec<f32>,
     scratch: (Vec<f32>, Vec<f32>, Vec<f32>),
     /// Contrast floor used by the last [`ThresholdMap::compute`], intensity units.
@@ -91,26 +96,35 @@ impl ThresholdMap {
         self.floor
     }
 
-    /// Threshold of block `(bx, by)`.
+    /// Thresholds at `level` of the local range: `min + level·(max − min)` (0.5 = mid-range;
+    /// higher levels open thin dark gaps between bright shapes, lower ones thin bright gaps).
+    pub fn set_level(&mut self, level: f32) {
+        self.threshold.clear();
+        self.threshold
+            .extend(self.low.iter().zip(&self.range).map(|(l, r)| l + level * r));
+    }
+
+    /// Threshold of block `(bx, by)` at the current level.
     #[inline]
     pub fn at_block(&self, bx: usize, by: usize) -> f32 {
         self.threshold[by * self.blocks.0 + bx]
     }
 
-    /// Mid-range of the smallest neighbourhood with enough contrast, then 3×3 smoothing.
+    /// Range of the smallest neighbourhood with enough contrast, then 3×3 smoothing.
     fn choose_thresholds(&mut self) {
         let (bw, bh) = self.blocks;
         let n = bw * bh;
-        let mut chosen = vec![f32::NAN; n];
+        // (min, range) of the chosen neighbourhood; NaN = none yet.
+        let mut chosen = vec![(f32::NAN, f32::NAN); n];
         let (lo, hi, tmp) = &mut self.scratch;
         for &r in &RADII {
             window_extreme(&self.min, bw, bh, r, tmp, lo, f32::min);
             window_extreme(&self.max, bw, bh, r, tmp, hi, f32::max);
             let mut open = false;
             for i in 0..n {
-                if chosen[i].is_nan() {
+                if chosen[i].0.is_nan() {
                     if hi[i] - lo[i] >= self.floor {
-                        chosen[i] = 0.5 * (hi[i] + lo[i]);
+                        chosen[i] = (lo[i], hi[i] - lo[i]);
                     } else {
                         open = true;
                     }
@@ -120,25 +134,31 @@ impl ThresholdMap {
                 break;
             }
         }
-        self.threshold.clear();
-        self.threshold.resize(n, f32::INFINITY);
+        self.low.clear();
+        self.low.resize(n, f32::INFINITY);
+        self.range.clear();
+        self.range.resize(n, 0.0);
         for by in 0..bh {
             for bx in 0..bw {
-                let (mut s, mut k) = (0.0f32, 0.0f32);
+                if chosen[by * bw + bx].0.is_nan() {
+                    continue;
+                }
+                let (mut s, mut sr, mut k) = (0.0f32, 0.0f32, 0.0f32);
                 for y in by.saturating_sub(1)..(by + 2).min(bh) {
                     for x in bx.saturating_sub(1)..(bx + 2).min(bw) {
-                        let t = chosen[y * bw + x];
-                        if !t.is_nan() {
-                            s += t;
+                        let (l, r) = chosen[y * bw + x];
+                        if !l.is_nan() {
+                            s += l;
+                            sr += r;
                             k += 1.0;
                         }
                     }
                 }
-                if !chosen[by * bw + bx].is_nan() && k > 0.0 {
-                    self.threshold[by * bw + bx] = s / k;
-                }
+                self.low[by * bw + bx] = s / k;
+                self.range[by * bw + bx] = sr / k;
             }
         }
+        self.set_level(0.5);
     }
 }
 

@@ -331,9 +331,18 @@ impl HpCodeDetector {
         if !(coarse.x.is_finite() && coarse.y.is_finite()) {
             return Ok(None);
         }
+        let reject = |why: &str| {
+            log::debug!(
+                "HP code candidate at ({:.1}, {:.1}) px, module {:.2} px: {why}",
+                coarse.x,
+                coarse.y,
+                triple.module_px
+            );
+            Ok(None)
+        };
         let size = self.window_size(triple);
         let Some(mut found) = self.analyze_window(image, triple, coarse, size)? else {
-            return Ok(None);
+            return reject("no grid matching the finders in the window");
         };
         if self.params.pose_formula == PoseFormula::Symmetric {
             // Second pass on the window the measured centre and width call for, when the
@@ -356,24 +365,28 @@ impl HpCodeDetector {
         let size = analysis.size.1;
         let window_center = Vector2::new(center.0 as f64, center.1 as f64);
         let Some(reading) = marker_id::read_id(image, triple.polarity, &grid.dots) else {
-            return Ok(None);
+            return reject("ID dots outside the image or without contrast");
         };
         // An uncertain ID is never reported as a marker.
         if reading.confidence < self.params.min_id_confidence {
-            return Ok(None);
+            return reject(&format!(
+                "ID {} read with confidence {:.3} < {}",
+                reading.id, reading.confidence, self.params.min_id_confidence
+            ));
         }
         let (finders, grid) = if reading.mirrored {
             let mirrored = triple.mirrored();
             match fine::locate(&analysis.planes, &mirrored, window_center) {
                 Some(g) => (mirrored, g),
-                None => return Ok(None),
+                None => return reject("mirrored grid does not fit"),
             }
         } else {
             (*triple, grid)
         };
         // Three finder-like shapes around something that is not this marker's dot grid.
-        if marker_id::grid_support(image, triple.polarity, &grid.dots) < MIN_GRID_SUPPORT {
-            return Ok(None);
+        let support = marker_id::grid_support(image, triple.polarity, &grid.dots);
+        if support < MIN_GRID_SUPPORT {
+            return reject(&format!("grid support {support:.3} < {MIN_GRID_SUPPORT}"));
         }
         let (icx, icy) = image.center();
         let image_center = Vector2::new(icx as f64, icy as f64);

@@ -21,6 +21,9 @@ use crate::binarize::{Region, Regions, ThresholdMap};
 use crate::grey_image::{GreyImage, Polarity};
 use nalgebra::Vector2;
 
+/// Threshold levels scanned, fractions of the local range: the mid-range, and two levels
+/// that keep a blurred one-module gap open in bright (0.7) and dark (0.3) finders.
+const LEVELS: [f32; 3] = [0.5, 0.7, 0.3];
 /// Accepted `√(filled gap / filled centre)` (nominal 5/3: blur and threshold move it).
 const GAP_RATIO: (f64, f64) = (1.35, 2.3);
 /// Largest distance between the centroids of centre and gap, in gap sides.
@@ -64,12 +67,13 @@ impl FinderScanner {
         }
         self.thresholds
             .compute(image, min_contrast.map(|c| c as f32));
-        self.regions.label(image, &self.thresholds);
-        let regions = &self.regions.regions;
-        let mut found: Vec<Finder> = regions
-            .iter()
-            .filter_map(|c| finder_at(regions, c))
-            .collect();
+        let mut found: Vec<Finder> = Vec::new();
+        for level in LEVELS {
+            self.thresholds.set_level(level);
+            self.regions.label(image, &self.thresholds);
+            let regions = &self.regions.regions;
+            found.extend(regions.iter().filter_map(|c| finder_at(regions, c)));
+        }
         // One finder may be seen through two centre candidates: its true centre, and its gap
         // taken as a centre of the other polarity with the ring as its gap (sides 5 : 7, at
         // the edge of the accepted ratios). Keep the innermost nesting (smallest module),
