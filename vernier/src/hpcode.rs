@@ -370,8 +370,12 @@ impl HpCodeDetector {
         // An uncertain ID is never reported as a marker.
         if reading.confidence < self.params.min_id_confidence {
             return reject(&format!(
-                "ID {} read with confidence {:.3} < {}",
-                reading.id, reading.confidence, self.params.min_id_confidence
+                "ID {} read with confidence {:.3} < {} (ID margin {:.3}, other edge {:.3})",
+                reading.id,
+                reading.confidence,
+                self.params.min_id_confidence,
+                reading.parts.0,
+                reading.parts.1
             ));
         }
         let (finders, grid) = if reading.mirrored {

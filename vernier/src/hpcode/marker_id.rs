@@ -64,9 +64,11 @@ pub(crate) struct IdReading {
     pub id: u64,
     /// True when the ID was found in the left column: the marker is mirrored.
     pub mirrored: bool,
-    /// Confidence in `[0, 1]`: the smallest bit margin of both edges; 0 when both edges miss
-    /// dots (inconsistent marker).
+    /// Confidence in `[0, 1]`: the smaller of the ID edge's smallest bit margin and of how
+    /// clearly the other edge is complete (0 when it misses a dot: inconsistent marker).
     pub confidence: f64,
+    /// The two parts of the confidence: ID-edge margin, completeness of the other edge.
+    pub parts: (f64, f64),
 }
 
 /// Reads the ID of the marker whose dots are at `grid`, or `None` when a needed sample lies
@@ -95,6 +97,7 @@ pub(crate) fn read_id(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> 
         id: id_edge.value(),
         mirrored,
         confidence,
+        parts: (id_edge.margin, complete_edge.completeness),
     })
 }
 
@@ -125,23 +128,29 @@ fn read_edge(
         background.push(sample(point(0.5, c - 0.5))?);
         background.push(sample(point(0.5, c + 0.5))?);
     }
-    let hi = median(&mut present);
-    let lo = median(&mut background);
-    let half_contrast = 0.5 * (hi - lo);
-    if half_contrast.is_nan() || half_contrast <= 0.0 {
+    let global_half = 0.5 * (median(&mut present.clone()) - median(&mut background.clone()));
+    if global_half.is_nan() || global_half <= 0.0 {
         return None;
     }
-    let threshold = 0.5 * (hi + lo);
+    // Each dot against its own neighbourhood (the three reference dots below it and the four
+    // gaps beside those), so that uneven illumination along the edge does not eat the margin;
+    // the local contrast is never taken below half the edge's.
+    let signed: Vec<f64> = (0..levels.len())
+        .map(|i| {
+            let near = i.saturating_sub(1)..(i + 2).min(levels.len());
+            let hi = median(&mut present[near.clone()].to_vec());
+            let lo = median(&mut background[2 * near.start..2 * near.end].to_vec());
+            let half = (0.5 * (hi - lo)).max(0.5 * global_half);
+            (levels[i] - 0.5 * (hi + lo)) / half
+        })
+        .collect();
     // levels[i] is dot column 4 + i; bit k is dot column n − 5 − k.
-    let bits: Vec<bool> = levels.iter().rev().map(|&v| v < threshold).collect();
-    let margin = levels
+    let bits: Vec<bool> = signed.iter().rev().map(|&s| s < 0.0).collect();
+    let margin = signed
         .iter()
-        .map(|&v| ((v - threshold).abs() / half_contrast).min(1.0))
+        .map(|s| s.abs().min(1.0))
         .fold(1.0f64, f64::min);
-    let completeness = levels
-        .iter()
-        .map(|&v| (v - threshold) / half_contrast)
-        .fold(f64::INFINITY, f64::min);
+    let completeness = signed.iter().copied().fold(f64::INFINITY, f64::min);
     Some(EdgeBits {
         bits,
         margin,
