@@ -388,6 +388,9 @@ impl HpCodeDetector {
             (*triple, grid)
         };
         // Three finder-like shapes around something that is not this marker's dot grid.
+        if !marker_id::corners_consistent(image, triple.polarity, &grid.dots) {
+            return reject("corners do not show three finders and a block of dots");
+        }
         let support = marker_id::grid_support(image, triple.polarity, &grid.dots);
         if support < MIN_GRID_SUPPORT {
             return reject(&format!("grid support {support:.3} < {MIN_GRID_SUPPORT}"));

@@ -206,6 +206,64 @@ pub(crate) fn grid_support(image: &GreyImage, polarity: Polarity, grid: &DotGrid
     good as f64 / (dots.len() + gaps.len()) as f64
 }
 
+/// Whether the four corners of the marker show what they must: a finder square at the three
+/// finder corners and plain dots at the fourth. A finder differs from a block of dots by its
+/// *bridges*: the cells between two neighbouring dot positions are material in its ring and
+/// centre, empty in a dot grid. So a reading turned by a quarter turn (three finders seen as a
+/// different corner triple, e.g. from a two-finder hypothesis) is caught: it expects dots where
+/// a finder is. Lenient on the finders (dust may hide one), strict on the dot corner.
+pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> bool {
+    let n = grid.size;
+    if n < 9 {
+        return false;
+    }
+    let Some(threshold) = dot_threshold(image, polarity, grid) else {
+        return false;
+    };
+    let bridges = |r0: usize, c0: usize| -> Option<f64> {
+        let (mut ink, mut count) = (0usize, 0usize);
+        for r in r0..r0 + 4 {
+            for c in c0..c0 + 4 {
+                let mut probe = |p: Vector2<f64>| -> Option<()> {
+                    count += 1;
+                    ink += (dot_level(image, polarity, p, grid)? > threshold) as usize;
+                    Some(())
+                };
+                if c + 1 < c0 + 4 {
+                    probe(grid.at(r as f64, c as f64 + 0.5))?;
+                }
+                if r + 1 < r0 + 4 {
+                    probe(grid.at(r as f64 + 0.5, c as f64))?;
+                }
+            }
+        }
+        Some(ink as f64 / count as f64)
+    };
+    let far = n - 4;
+    let finders = [(0, 0), (0, far), (far, 0)].map(|(r, c)| bridges(r, c));
+    let Some(dot_corner) = bridges(far, far) else {
+        return false;
+    };
+    // Nominal: 13 of 24 bridges are material in a finder, none in a dot block.
+    let finder_like = finders.iter().flatten().filter(|&&b| b >= 0.3).count();
+    finder_like >= 2 && dot_corner < 0.2
+}
+
+/// Threshold halfway between the median level of the marker's inner dots and of the gaps
+/// between them; `None` when the dots are not brighter or a sample is outside the image.
+fn dot_threshold(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> Option<f64> {
+    let n = grid.size;
+    let (mut dots, mut gaps) = (Vec::new(), Vec::new());
+    for r in 4..n - 4 {
+        for c in 4..n - 4 {
+            dots.push(dot_level(image, polarity, grid.at(r as f64, c as f64), grid)?);
+            gaps.push(dot_level(image, polarity, grid.at(r as f64 + 0.5, c as f64 + 0.5), grid)?);
+        }
+    }
+    let (hi, lo) = (median(&mut dots), median(&mut gaps));
+    (hi > lo).then_some(0.5 * (hi + lo))
+}
+
 /// Material level (1 = dot) around image point `p`: the median of nine bilinear samples on a
 /// 3×3 grid ±0.15 period along the grid axes, so that a thin hair or scratch over part of a dot
 /// does not change it. `None` outside the image.
