@@ -217,7 +217,7 @@ pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &D
     if n < 9 {
         return false;
     }
-    let Some(threshold) = dot_threshold(image, polarity, grid) else {
+    let Some(threshold) = bridge_threshold(image, polarity, grid) else {
         return false;
     };
     let bridges = |r0: usize, c0: usize| -> Option<f64> {
@@ -246,21 +246,25 @@ pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &D
     };
     // Nominal: 13 of 24 bridges are material in a finder, none in a dot block.
     let finder_like = finders.iter().flatten().filter(|&&b| b >= 0.3).count();
+    log::trace!("corner bridges: finders {finders:?}, dot corner {dot_corner:.3}");
     finder_like >= 2 && dot_corner < 0.2
 }
 
-/// Threshold halfway between the median level of the marker's inner dots and of the gaps
-/// between them; `None` when the dots are not brighter or a sample is outside the image.
-fn dot_threshold(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> Option<f64> {
+/// Threshold halfway between the median level of the marker's inner dots and of the bridges
+/// between them (which blur lifts towards the dots, while a finder's solid ring stays at least
+/// as bright as a dot); `None` when the dots do not stand out or a sample is outside the image.
+fn bridge_threshold(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> Option<f64> {
     let n = grid.size;
-    let (mut dots, mut gaps) = (Vec::new(), Vec::new());
+    let (mut dots, mut bridges) = (Vec::new(), Vec::new());
     for r in 4..n - 4 {
         for c in 4..n - 4 {
-            dots.push(dot_level(image, polarity, grid.at(r as f64, c as f64), grid)?);
-            gaps.push(dot_level(image, polarity, grid.at(r as f64 + 0.5, c as f64 + 0.5), grid)?);
+            let (r, c) = (r as f64, c as f64);
+            dots.push(dot_level(image, polarity, grid.at(r, c), grid)?);
+            bridges.push(dot_level(image, polarity, grid.at(r, c + 0.5), grid)?);
+            bridges.push(dot_level(image, polarity, grid.at(r + 0.5, c), grid)?);
         }
     }
-    let (hi, lo) = (median(&mut dots), median(&mut gaps));
+    let (hi, lo) = (median(&mut dots), median(&mut bridges));
     (hi > lo).then_some(0.5 * (hi + lo))
 }
 
