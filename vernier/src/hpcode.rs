@@ -37,7 +37,7 @@ use nalgebra::Vector2;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
 /// Most two-finder hypotheses tried per image (each costs one window analysis).
-const MAX_HYPOTHESES: usize = 24;
+const MAX_HYPOTHESES: usize = 48;
 /// Smallest fraction of the marker's dots and gaps that must look right
 /// ([`marker_id::grid_support`]); dust and hair may spoil the rest.
 const MIN_GRID_SUPPORT: f64 = 0.75;
@@ -279,6 +279,14 @@ impl HpCodeDetector {
         Ok(markers)
     }
 
+    /// Whether a window of `size` around the marker of `triple` gets the radial Hann
+    /// apodisation: only when it reaches beyond the marker (the setting wins).
+    fn apodize(&self, triple: &FinderTriple, size: usize) -> bool {
+        self.params
+            .apodize
+            .unwrap_or_else(|| self.params.window_size.is_some() && size > auto_window_for(triple))
+    }
+
     /// Window side for the marker of `triple` (finders' estimate).
     fn window_size(&self, triple: &FinderTriple) -> usize {
         self.params
@@ -294,6 +302,7 @@ impl HpCodeDetector {
         triple: &FinderTriple,
         center: Vector2<f64>,
         size: usize,
+        hann: bool,
     ) -> Result<Option<WindowResult>> {
         let (index_center, hann_center) = match self.params.pose_formula {
             PoseFormula::Symmetric => (window_center(center), (size as f64 - 1.0) / 2.0),
@@ -303,16 +312,14 @@ impl HpCodeDetector {
                 (size / 2) as f64,
             ),
         };
-        // Automatic windows stay inside the marker; a given one may reach beyond it.
-        let hann = self
-            .params
-            .apodize
-            .unwrap_or_else(|| self.params.window_size.is_some() && size > auto_window_for(triple));
         let hann_center = hann.then_some(hann_center);
         let window = self.window_image(image, index_center, size, triple.polarity, hann_center)?;
         let analysis = match self.engine.analyze(&window, &self.params.phase) {
             Ok(a) => a,
-            Err(Error::PatternNotFound(_)) => return Ok(None),
+            Err(Error::PatternNotFound(why)) => {
+                log::trace!("window {size} px at {index_center:?}: {why}");
+                return Ok(None);
+            }
             Err(e) => return Err(e),
         };
         let origin = Vector2::new(index_center.0 as f64, index_center.1 as f64);
@@ -341,7 +348,17 @@ impl HpCodeDetector {
             Ok(None)
         };
         let size = self.window_size(triple);
-        let Some(mut found) = self.analyze_window(image, triple, coarse, size)? else {
+        let mut first =
+            self.analyze_window(image, triple, coarse, size, self.apodize(triple, size))?;
+        if first.is_none() && self.params.window_size.is_none() {
+            // Too few periods inside the marker's dot field (small markers, dust over it):
+            // the whole marker, apodised, has about twice as many.
+            let width = auto_window_width(triple);
+            let wide = 2 * fast_size_at_most((width / 2.0).ceil() as usize).max(MIN_WINDOW / 2);
+            let hann = self.params.apodize.unwrap_or(true);
+            first = self.analyze_window(image, triple, coarse, wide, hann)?;
+        }
+        let Some(mut found) = first else {
             return reject("no grid matching the finders in the window");
         };
         if self.params.pose_formula == PoseFormula::Symmetric {
@@ -356,7 +373,10 @@ impl HpCodeDetector {
                 auto_window_size(width, module, found.2.alpha(false))
             });
             if window_center(fine.center) != found.0 || size2 != size {
-                if let Some(second) = self.analyze_window(image, triple, fine.center, size2)? {
+                let hann = self.apodize(triple, size2);
+                if let Some(second) =
+                    self.analyze_window(image, triple, fine.center, size2, hann)?
+                {
                     found = second;
                 }
             }
@@ -518,10 +538,14 @@ fn window_center(center: Vector2<f64>) -> (i64, i64) {
 
 /// Automatic window side for the marker of `triple`, from its finders.
 fn auto_window_for(triple: &FinderTriple) -> usize {
+    let u = triple.right - triple.corner;
+    auto_window_size(auto_window_width(triple), triple.module_px, u.y.atan2(u.x))
+}
+
+/// Marker width from its finders, pixels: the legs plus one finder (7 modules).
+fn auto_window_width(triple: &FinderTriple) -> f64 {
     let (u, v) = (triple.right - triple.corner, triple.bottom - triple.corner);
-    // Marker width: the legs plus one finder (7 modules).
-    let width = 0.5 * (u.norm() + v.norm()) + 7.0 * triple.module_px;
-    auto_window_size(width, triple.module_px, u.y.atan2(u.x))
+    0.5 * (u.norm() + v.norm()) + 7.0 * triple.module_px
 }
 
 /// Automatic window side for a marker `width` pixels wide, `module` pixels per half period,

@@ -21,6 +21,9 @@ use crate::binarize::{Region, Regions, ThresholdMap};
 use crate::grey_image::{GreyImage, Polarity};
 use nalgebra::Vector2;
 
+/// Closest accepted distance between two finders of the same size, modules (see
+/// [`crowded`]; two markers touching edge to edge have finders 7 modules apart).
+const MIN_SPACING: f64 = 10.0;
 /// Threshold levels scanned, fractions of the local range: the mid-range, and two levels
 /// that keep a blurred one-module gap open in bright (0.7) and dark (0.3) finders.
 const LEVELS: [f32; 3] = [0.5, 0.7, 0.3];
@@ -74,26 +77,56 @@ impl FinderScanner {
             let regions = &self.regions.regions;
             found.extend(regions.iter().filter_map(|c| finder_at(regions, c)));
         }
-        // One finder may be seen through two centre candidates: its true centre, and its gap
-        // taken as a centre of the other polarity with the ring as its gap (sides 5 : 7, at
-        // the edge of the accepted ratios). Keep the innermost nesting (smallest module),
-        // then the best shape.
-        found.sort_by(|a, b| {
-            a.module_px
-                .total_cmp(&b.module_px)
-                .then(b.score.total_cmp(&a.score))
-        });
-        let mut kept: Vec<Finder> = Vec::with_capacity(found.len());
-        for f in found {
-            if !kept
-                .iter()
-                .any(|k| (k.center - f.center).norm() < 2.0 * k.module_px.max(f.module_px))
-            {
-                kept.push(f);
+        let unique = dedup(found);
+        unique
+            .iter()
+            .filter(|f| !crowded(f, &unique))
+            .copied()
+            .collect()
+    }
+}
+
+/// One finder per structure and size: the same finder is seen at several threshold levels, of
+/// which the best-shaped is kept. Look-alikes of another size at the same place are kept too:
+/// a finder's gap can pass for the centre of a finder of the other polarity whose gap is the
+/// ring (module 1.5 times larger), and a centre imaged hollow can hold a smaller one. Shape
+/// alone cannot always tell which is real; the marker geometry and the grid do (a look-alike's
+/// module disagrees with the dot period by a factor of 1.5 or more).
+fn dedup(mut found: Vec<Finder>) -> Vec<Finder> {
+    found.sort_by(|a, b| b.score.total_cmp(&a.score));
+    let mut kept: Vec<Finder> = Vec::with_capacity(found.len());
+    for f in found {
+        let mut duplicate = false;
+        for k in &kept {
+            let (small, large) = if k.module_px <= f.module_px {
+                (k.module_px, f.module_px)
+            } else {
+                (f.module_px, k.module_px)
+            };
+            if (k.center - f.center).norm() > small {
+                continue;
+            }
+            if large / small < 1.2 && k.polarity == f.polarity {
+                duplicate = true;
             }
         }
-        kept
+        if !duplicate {
+            kept.push(f);
+        }
     }
+    kept
+}
+
+/// Finder squares of one marker are at least `W − 7 ≥ 18` modules apart, so a finder with a
+/// look-alike of its size closer than [`MIN_SPACING`] modules is a texture element (e.g. a
+/// hollow-looking dot of a dot grid), not a finder.
+fn crowded(f: &Finder, all: &[Finder]) -> bool {
+    all.iter().any(|g| {
+        g != f
+            && g.polarity == f.polarity
+            && (g.module_px / f.module_px - 1.0).abs() < 0.3
+            && (g.center - f.center).norm() < MIN_SPACING * f.module_px
+    })
 }
 
 /// The finder whose centre region is `centre`, if it and the gap around it form one.

@@ -84,11 +84,20 @@ pub(crate) fn locate(
         .filter(|c| c.0 != ix)
         .min_by(|a, b| error(&a.1, &ey).total_cmp(&error(&b.1, &ey)))?;
     if error(&plane_x, &ex) > MAX_AXIS_ERROR || error(&plane_y, &ey) > MAX_AXIS_ERROR {
+        log::trace!(
+            "grid axes {:.3}, {:.3} rad off the finders'",
+            error(&plane_x, &ex),
+            error(&plane_y, &ey)
+        );
         return None;
     }
     let expected_period = 2.0 * triple.module_px;
     for p in [&plane_x, &plane_y] {
         if (p.pixel_period() / expected_period - 1.0).abs() > MAX_PERIOD_ERROR {
+            log::trace!(
+                "grid period {:.2} px, finders say {expected_period:.2} px",
+                p.pixel_period()
+            );
             return None;
         }
     }
@@ -105,6 +114,7 @@ pub(crate) fn locate(
             .iter()
             .any(|e| e.abs() > MAX_LEG_ERROR)
     {
+        log::trace!("finder legs {leg_x:?}, {leg_y:?} periods: not whole");
         return None;
     }
     let half_periods = 7 + 2 * whole as usize;

@@ -156,7 +156,10 @@ pub fn pair_hypotheses(
             if (fa.module_px - fb.module_px).abs() > SIZE_TOLERANCE * module {
                 continue;
             }
-            let misfit = 1.0 + ((fa.module_px - fb.module_px) / module).powi(2);
+            // Best-shaped, equal-sized finders first.
+            let misfit = 1.0
+                + ((fa.module_px - fb.module_px) / module).powi(2)
+                + (2.0 - fa.score - fb.score);
             let u = fb.center - fa.center;
             let perp = Vector2::new(-u.y, u.x);
             let leg = u.norm() / module;

@@ -244,10 +244,14 @@ pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &D
     let Some(dot_corner) = bridges(far, far) else {
         return false;
     };
-    // Nominal: 13 of 24 bridges are material in a finder, none in a dot block.
-    let finder_like = finders.iter().flatten().filter(|&&b| b >= 0.3).count();
+    // Nominal: 13 of 24 bridges are material in a finder (more when blurred), none in a dot
+    // block; dust may spoil one corner of either kind, so the dot corner is compared with the
+    // middle finder corner.
+    let mut seen: Vec<f64> = finders.iter().flatten().copied().collect();
+    seen.sort_by(f64::total_cmp);
+    let middle = seen.get(seen.len().saturating_sub(2)).copied().unwrap_or(0.0);
     log::trace!("corner bridges: finders {finders:?}, dot corner {dot_corner:.3}");
-    finder_like >= 2 && dot_corner < 0.2
+    seen.len() == 3 && middle >= 0.3 && dot_corner < (0.5 * middle).min(0.4)
 }
 
 /// Threshold halfway between the median level of the marker's inner dots and of the bridges
@@ -268,9 +272,16 @@ fn bridge_threshold(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> Op
     (hi > lo).then_some(0.5 * (hi + lo))
 }
 
-/// Material level (1 = dot) around image point `p`: the median of nine bilinear samples on a
-/// 3×3 grid ±0.15 period along the grid axes, so that a thin hair or scratch over part of a dot
-/// does not change it. `None` outside the image.
+/// Rank (ascending, of 9) of the sample taken as a dot's level: the third highest. Occluders
+/// that hide material (a dark hair over a bright dot, bright dust over a dark one) lower some
+/// samples and are ignored up to six samples; occluders that mimic material (a dark hair over
+/// an empty cell of dark-dot markers) need to cover three samples to matter.
+const OCCLUSION_RANK: usize = 6;
+
+/// Material level (1 = dot) around image point `p`: an upper order statistic
+/// ([`OCCLUSION_RANK`]) of nine bilinear samples on a 3×3 grid ±0.15 period along the grid
+/// axes, so that a hair or scratch over part of a dot does not change it. `None` outside the
+/// image.
 fn dot_level(
     image: &GreyImage,
     polarity: Polarity,
@@ -281,13 +292,14 @@ fn dot_level(
     let mut samples = [0.0f64; 9];
     for (k, s) in samples.iter_mut().enumerate() {
         let q = p + dx * (k % 3) as f64 - dx + dy * (k / 3) as f64 - dy;
-        *s = bilinear(image, q.x, q.y)?;
+        let v = bilinear(image, q.x, q.y)?;
+        *s = match polarity {
+            Polarity::BrightDots => v,
+            Polarity::DarkDots => 1.0 - v,
+        };
     }
-    let v = median(&mut samples);
-    Some(match polarity {
-        Polarity::BrightDots => v,
-        Polarity::DarkDots => 1.0 - v,
-    })
+    samples.sort_by(f64::total_cmp);
+    Some(samples[OCCLUSION_RANK])
 }
 
 /// Bilinear interpolation at `(x, y)` = `(col, row)`; `None` outside the image.
