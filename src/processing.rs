@@ -198,6 +198,7 @@ pub fn build_output(
             quality: m.quality,
             covariance: si.covariance(period * scale, window_px).into(),
             duplicate_id: m.duplicate_id,
+            decode_confidence: m.decode_confidence.unwrap_or(-1.0),
         });
         if out.poses.iter().any(|(id, _)| *id == m.id) {
             continue;

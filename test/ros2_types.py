@@ -111,6 +111,7 @@ class MarkerPose(IdlStruct, typename="vernier_ros::msg::dds_::MarkerPose_"):
     quality: float64 = 0.0
     covariance: array[float64, 36] = field(default_factory=lambda: [0.0] * 36)
     duplicate_id: bool = False
+    decode_confidence: float64 = 0.0
 
 
 @dataclass

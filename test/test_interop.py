@@ -356,6 +356,7 @@ def run_hpcode_checks(peer, truth, frames):
                 mid = true_marker["id"]
                 m = by_id[mid]
                 assert not m.duplicate_id and 0.0 < m.quality <= 1.0, (m.duplicate_id, m.quality)
+                assert 0.2 <= m.decode_confidence <= 1.0, m.decode_confidence
                 assert 0.0 < m.covariance[0] and m.covariance[14] >= 1e5, m.covariance
                 stamped = wait_for(peer, peer.poses[mid], sec, 0, 5.0)
                 assert stamped.header.frame_id == CAMERA_FRAME, stamped.header.frame_id

@@ -5,7 +5,8 @@
 //! epoch: the ROS header stamp, or the image file's modification time), `source` (image
 //! file or bag topic), `id`, pose `x, y, z` (pattern units, µm), `alpha, beta, gamma` (rad),
 //! `pixel_size` (pattern units per pixel), `x_px, y_px` (pattern origin in the image, px),
-//! `quality`, `duplicate_id`, `time_ms` (processing time of the frame), `error`. A frame
+//! `quality`, `duplicate_id`, `decode_confidence` (coarse decoding, 0–1, empty for periodic
+//! grids), `time_ms` (processing time of the frame), `error`. A frame
 //! without marker or whose detection failed has one row with empty marker columns.
 
 use std::io::Write;
@@ -46,6 +47,9 @@ pub struct PoseRow {
     pub quality: Option<f64>,
     /// True when another marker of the frame has the same ID.
     pub duplicate_id: Option<bool>,
+    /// Confidence of the coarse decoding (HP code ID, stamp bitmap, Megarena code), `[0, 1]`;
+    /// empty for periodic grids.
+    pub decode_confidence: Option<f64>,
     /// Processing time of the frame, ms.
     pub time_ms: f64,
     /// Why the frame failed, if it did.
@@ -53,7 +57,7 @@ pub struct PoseRow {
 }
 
 /// Column names, in order.
-pub const COLUMNS: [&str; 17] = [
+pub const COLUMNS: [&str; 18] = [
     "frame",
     "stamp",
     "source",
@@ -69,6 +73,7 @@ pub const COLUMNS: [&str; 17] = [
     "y_px",
     "quality",
     "duplicate_id",
+    "decode_confidence",
     "time_ms",
     "error",
 ];
@@ -107,6 +112,7 @@ impl PoseRow {
                         y_px: Some(m.origin_px.y),
                         quality: Some(m.quality),
                         duplicate_id: Some(m.duplicate_id),
+                        decode_confidence: m.decode_confidence,
                         ..base.clone()
                     }
                 })
@@ -120,7 +126,7 @@ impl PoseRow {
     }
 
     /// The CSV fields, in [`COLUMNS`] order.
-    fn csv_fields(&self) -> [String; 17] {
+    fn csv_fields(&self) -> [String; 18] {
         let f = |v: Option<f64>| v.map(|v| v.to_string()).unwrap_or_default();
         [
             self.frame.to_string(),
@@ -138,6 +144,7 @@ impl PoseRow {
             f(self.y_px),
             f(self.quality),
             self.duplicate_id.map(|v| v.to_string()).unwrap_or_default(),
+            f(self.decode_confidence),
             format!("{:.3}", self.time_ms),
             csv_escape(self.error.as_deref().unwrap_or("")),
         ]
@@ -157,7 +164,8 @@ fn csv_escape(s: &str) -> String {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum TableFormat {
     /// One JSON object per image: `image`, `markers` (each with `id`, `x`, `y`, `z`, `alpha`,
-    /// `beta`, `gamma`, `pixel_size`, `x_px`, `y_px`, `quality`, `duplicate_id`), `time_ms`
+    /// `beta`, `gamma`, `pixel_size`, `x_px`, `y_px`, `quality`, `duplicate_id`,
+    /// `decode_confidence`), `time_ms`
     /// and, for a failed image, `error`.
     Json,
     /// Comma-separated values with a header line, one row per image and marker.
@@ -213,6 +221,7 @@ impl<W: Write> TableWriter<W> {
                     "alpha": r.alpha, "beta": r.beta, "gamma": r.gamma,
                     "pixel_size": r.pixel_size, "x_px": r.x_px, "y_px": r.y_px,
                     "quality": r.quality, "duplicate_id": r.duplicate_id,
+                    "decode_confidence": r.decode_confidence,
                 })
             })
             .collect();
@@ -319,8 +328,9 @@ pub fn read_table(text: &str) -> Result<Vec<PoseRow>, String> {
             y_px: number(12)?,
             quality: number(13)?,
             duplicate_id: text_field(14).map(|s| s == "true"),
-            time_ms: number(15)?.unwrap_or(0.0),
-            error: text_field(16),
+            decode_confidence: number(15)?,
+            time_ms: number(16)?.unwrap_or(0.0),
+            error: text_field(17),
         });
     }
     Ok(rows)

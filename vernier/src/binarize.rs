@@ -4,11 +4,11 @@
 //! their size, polarity, contrast or illumination:
 //!
 //! 1. **Local threshold** ([`ThresholdMap`]): the image is cut into 8×8 blocks, each keeps its
-//!    minimum and maximum. For every block, neighbourhoods of 3, 5, 9, … 129 blocks (24 to
-//!    1032 px) are tried from the smallest; the first whose range (max − min) exceeds the
+//!    minimum and maximum. For every block, neighbourhoods of 3, 6, 12, … 192 blocks (24 to
+//!    1536 px, the 3×3 cells of a min/max pyramid around it) are tried from the smallest; the first whose range (max − min) exceeds the
 //!    *contrast floor* gives the threshold, the mid-range or another level of that range
-//!    ([`ThresholdMap::set_level`]: a multi-threshold scan). The floor is a multiple of the
-//!    image's noise, estimated from the quietest blocks, so the threshold follows the
+//!    ([`ThresholdMap::thresholds_at`]: a multi-threshold scan). The floor is a multiple of the
+//!    image's noise, estimated from the range of the quietest blocks, so the threshold follows the
 //!    structure of the scale at hand (a dot grid, a large uniform finder centre) and uneven
 //!    illumination, while flat noisy areas stay one region. The block thresholds are smoothed
 //!    over 3×3 blocks. (The neighbourhood ladder is the multi-scale form of the block
@@ -23,10 +23,12 @@ use crate::grey_image::GreyImage;
 
 /// Block side of the threshold map, pixels.
 pub const BLOCK: usize = 8;
-/// Neighbourhood radii tried for the local range, blocks (windows of 24 to 1032 px).
-const RADII: [usize; 7] = [1, 2, 4, 8, 16, 32, 64];
+/// Neighbourhood levels tried for the local range: 3·2^k blocks, k < LEVELS (24 to 1536 px).
+const LEVELS: usize = 7;
 /// Contrast floor: multiple of the noise standard deviation.
 const NOISE_FACTOR: f32 = 6.0;
+/// Expected range of the 64 samples of a block of pure Gaussian noise, in standard deviations.
+const RANGE_PER_SIGMA: f32 = 4.9;
 /// Contrast floor never below this, intensity units (`[0, 1]` images): quantisation ripples.
 const MIN_FLOOR: f32 = 0.015;
 
@@ -41,9 +43,6 @@ pub struct ThresholdMap {
     /// where no neighbourhood has contrast: the block is all dark at any level).
     low: Vec<f32>,
     range: Vec<f32>,
-    /// Thresholds at the level of the last [`ThresholdMap::set_level`].
-    threshold: Vec<f32>,
-    scratch: (Vec<f32>, Vec<f32>, Vec<f32>),
     /// Contrast floor used by the last [`ThresholdMap::compute`], intensity units.
     floor: f32,
 }
@@ -59,34 +58,26 @@ impl ThresholdMap {
         self.min.resize(bw * bh, f32::INFINITY);
         self.max.clear();
         self.max.resize(bw * bh, f32::NEG_INFINITY);
-        let mut spread = Vec::with_capacity(bw * bh);
         let px = image.pixels();
-        for by in 0..bh {
-            let rows = by * BLOCK..((by + 1) * BLOCK).min(h);
-            for bx in 0..bw {
-                let cols = bx * BLOCK..((bx + 1) * BLOCK).min(w);
-                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-                let (mut s, mut s2, mut n) = (0.0f32, 0.0f32, 0.0f32);
-                for r in rows.clone() {
-                    for &v in &px[r * w + cols.start..r * w + cols.end] {
-                        lo = lo.min(v);
-                        hi = hi.max(v);
-                        s += v;
-                        s2 += v * v;
-                        n += 1.0;
-                    }
+        for (r, row) in px.chunks_exact(w).enumerate() {
+            let by = r / BLOCK;
+            let lo = &mut self.min[by * bw..(by + 1) * bw];
+            let hi = &mut self.max[by * bw..(by + 1) * bw];
+            for ((chunk, l), h) in row.chunks(BLOCK).zip(lo.iter_mut()).zip(hi.iter_mut()) {
+                // Branch-free selects (vectorised; `f32::min` is not, for its NaN rules).
+                for &v in chunk {
+                    *l = if v < *l { v } else { *l };
+                    *h = if v > *h { v } else { *h };
                 }
-                self.min[by * bw + bx] = lo;
-                self.max[by * bw + bx] = hi;
-                let mean = s / n;
-                spread.push((s2 / n - mean * mean).max(0.0).sqrt());
             }
         }
         self.floor = min_contrast.unwrap_or_else(|| {
-            // The quietest tenth of the blocks sees only noise in any real image.
-            let k = spread.len() / 10;
-            let (_, sigma, _) = spread.select_nth_unstable_by(k, f32::total_cmp);
-            (NOISE_FACTOR * *sigma).max(MIN_FLOOR)
+            // The quietest tenth of the blocks sees only noise in any real image; the range of
+            // 64 Gaussian samples is about 4.9 standard deviations.
+            let mut ranges: Vec<f32> = self.min.iter().zip(&self.max).map(|(l, h)| h - l).collect();
+            let k = ranges.len() / 10;
+            let (_, range, _) = ranges.select_nth_unstable_by(k, f32::total_cmp);
+            (NOISE_FACTOR * *range / RANGE_PER_SIGMA).max(MIN_FLOOR)
         });
         self.choose_thresholds();
     }
@@ -96,18 +87,12 @@ impl ThresholdMap {
         self.floor
     }
 
-    /// Thresholds at `level` of the local range: `min + level·(max − min)` (0.5 = mid-range;
-    /// higher levels open thin dark gaps between bright shapes, lower ones thin bright gaps).
-    pub fn set_level(&mut self, level: f32) {
-        self.threshold.clear();
-        self.threshold
-            .extend(self.low.iter().zip(&self.range).map(|(l, r)| l + level * r));
-    }
-
-    /// Threshold of block `(bx, by)` at the current level.
-    #[inline]
-    pub fn at_block(&self, bx: usize, by: usize) -> f32 {
-        self.threshold[by * self.blocks.0 + bx]
+    /// Block thresholds at `level` of the local range, `min + level·(max − min)`, into `out`
+    /// (row-major blocks; 0.5 = mid-range; higher levels open thin dark gaps between bright
+    /// shapes, lower ones thin bright gaps).
+    pub fn thresholds_at(&self, level: f32, out: &mut Vec<f32>) {
+        out.clear();
+        out.extend(self.low.iter().zip(&self.range).map(|(l, r)| l + level * r));
     }
 
     /// Range of the smallest neighbourhood with enough contrast, then 3×3 smoothing.
@@ -116,23 +101,33 @@ impl ThresholdMap {
         let n = bw * bh;
         // (min, range) of the chosen neighbourhood; NaN = none yet.
         let mut chosen = vec![(f32::NAN, f32::NAN); n];
-        let (lo, hi, tmp) = &mut self.scratch;
-        for &r in &RADII {
-            window_extreme(&self.min, bw, bh, r, tmp, lo, f32::min);
-            window_extreme(&self.max, bw, bh, r, tmp, hi, f32::max);
+        // Pyramid of min/max over cells of 2^k × 2^k blocks; a block's neighbourhood at level
+        // k is the 3×3 cells around its own (3·2^k blocks wide), each level from the last.
+        let (mut lo, mut hi) = (self.min.clone(), self.max.clone());
+        let (mut cw, mut ch) = (bw, bh);
+        for k in 0..LEVELS {
+            let near_lo = extreme_3x3(&lo, cw, ch, f32::min);
+            let near_hi = extreme_3x3(&hi, cw, ch, f32::max);
             let mut open = false;
-            for i in 0..n {
-                if chosen[i].0.is_nan() {
-                    if hi[i] - lo[i] >= self.floor {
-                        chosen[i] = (lo[i], hi[i] - lo[i]);
+            for by in 0..bh {
+                for bx in 0..bw {
+                    let i = by * bw + bx;
+                    if !chosen[i].0.is_nan() {
+                        continue;
+                    }
+                    let c = (by >> k) * cw + (bx >> k);
+                    if near_hi[c] - near_lo[c] >= self.floor {
+                        chosen[i] = (near_lo[c], near_hi[c] - near_lo[c]);
                     } else {
                         open = true;
                     }
                 }
             }
-            if !open || r >= bw.max(bh) {
+            if !open || (cw <= 3 && ch <= 3) {
                 break;
             }
+            (lo, hi) = (pool_2x2(&lo, cw, ch, f32::min), pool_2x2(&hi, cw, ch, f32::max));
+            (cw, ch) = (cw.div_ceil(2), ch.div_ceil(2));
         }
         self.low.clear();
         self.low.resize(n, f32::INFINITY);
@@ -158,67 +153,57 @@ impl ThresholdMap {
                 self.range[by * bw + bx] = sr / k;
             }
         }
-        self.set_level(0.5);
     }
 }
 
-/// `out[i]` = `op`-extreme of `values` over the `(2r+1)²` blocks around block `i` (clipped at
-/// the borders); separable, `tmp` is scratch.
-fn window_extreme(
-    values: &[f32],
-    bw: usize,
-    bh: usize,
-    r: usize,
-    tmp: &mut Vec<f32>,
-    out: &mut Vec<f32>,
-    op: fn(f32, f32) -> f32,
-) {
-    tmp.clear();
-    tmp.resize(bw * bh, 0.0);
-    out.clear();
-    out.resize(bw * bh, 0.0);
-    for y in 0..bh {
-        let row = &values[y * bw..(y + 1) * bw];
-        sliding_extreme(row, r, &mut tmp[y * bw..(y + 1) * bw], op);
-    }
-    let mut column = vec![0.0f32; bh];
-    let mut result = vec![0.0f32; bh];
-    for x in 0..bw {
-        for y in 0..bh {
-            column[y] = tmp[y * bw + x];
-        }
-        sliding_extreme(&column, r, &mut result, op);
-        for y in 0..bh {
-            out[y * bw + x] = result[y];
+/// `op`-extreme over the 3×3 cells around each cell of a `w × h` grid (clipped at borders).
+fn extreme_3x3(v: &[f32], w: usize, h: usize, op: fn(f32, f32) -> f32) -> Vec<f32> {
+    let mut rows = vec![0.0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let mut e = v[y * w + x];
+            if x > 0 {
+                e = op(e, v[y * w + x - 1]);
+            }
+            if x + 1 < w {
+                e = op(e, v[y * w + x + 1]);
+            }
+            rows[y * w + x] = e;
         }
     }
+    let mut out = rows.clone();
+    for y in 0..h {
+        for x in 0..w {
+            let mut e = rows[y * w + x];
+            if y > 0 {
+                e = op(e, rows[(y - 1) * w + x]);
+            }
+            if y + 1 < h {
+                e = op(e, rows[(y + 1) * w + x]);
+            }
+            out[y * w + x] = e;
+        }
+    }
+    out
 }
 
-/// 1-D running extreme over `[i − r, i + r]`, O(n) (van Herk / Gil–Werman).
-fn sliding_extreme(v: &[f32], r: usize, out: &mut [f32], op: fn(f32, f32) -> f32) {
-    let n = v.len();
-    let k = 2 * r + 1;
-    let mut forward = vec![0.0f32; n];
-    let mut backward = vec![0.0f32; n];
-    for i in 0..n {
-        forward[i] = if i % k == 0 {
-            v[i]
-        } else {
-            op(forward[i - 1], v[i])
-        };
+/// `op`-extreme of each 2×2 cell group of a `w × h` grid: a grid half the size (rounded up).
+fn pool_2x2(v: &[f32], w: usize, h: usize, op: fn(f32, f32) -> f32) -> Vec<f32> {
+    let (pw, ph) = (w.div_ceil(2), h.div_ceil(2));
+    let mut out = vec![0.0f32; pw * ph];
+    for y in 0..ph {
+        for x in 0..pw {
+            let mut e = v[(2 * y) * w + 2 * x];
+            for (dx, dy) in [(1, 0), (0, 1), (1, 1)] {
+                let (sx, sy) = (2 * x + dx, 2 * y + dy);
+                if sx < w && sy < h {
+                    e = op(e, v[sy * w + sx]);
+                }
+            }
+            out[y * pw + x] = e;
+        }
     }
-    for i in (0..n).rev() {
-        backward[i] = if i % k == k - 1 || i == n - 1 {
-            v[i]
-        } else {
-            op(backward[i + 1], v[i])
-        };
-    }
-    for (i, o) in out.iter_mut().enumerate() {
-        let lo = i.saturating_sub(r);
-        let hi = (i + r).min(n - 1);
-        *o = op(backward[lo], forward[hi]);
-    }
+    out
 }
 
 /// A horizontal run of pixels of one colour.
@@ -260,52 +245,28 @@ pub struct Regions {
     /// Index of the first run of each row (plus one past the end).
     row_start: Vec<usize>,
     label: Vec<u32>,
+    /// Block thresholds of the current labelling.
+    thresholds: Vec<f32>,
     /// The regions, in raster order of their first pixel (a parent before its children).
     pub regions: Vec<Region>,
 }
 
 impl Regions {
-    /// Binarises `image` with `thresholds` and labels its regions.
-    pub fn label(&mut self, image: &GreyImage, thresholds: &ThresholdMap) {
-        self.collect_runs(image, thresholds);
+    /// Binarises `image` at `level` of the local ranges of `map` and labels its regions.
+    pub fn label(&mut self, image: &GreyImage, map: &ThresholdMap, level: f32) {
+        map.thresholds_at(level, &mut self.thresholds);
+        self.collect_runs(image, map);
         self.connect();
         self.measure(image.width() as u32, image.height() as u32);
     }
 
-    fn collect_runs(&mut self, image: &GreyImage, thresholds: &ThresholdMap) {
-        let (w, h) = (image.width(), image.height());
-        let px = image.pixels();
+    fn collect_runs(&mut self, image: &GreyImage, map: &ThresholdMap) {
+        let w = image.width();
         self.runs.clear();
         self.row_start.clear();
-        for r in 0..h {
+        for (r, row) in image.pixels().chunks_exact(w).enumerate() {
             self.row_start.push(self.runs.len());
-            let row = &px[r * w..(r + 1) * w];
-            let by = r / BLOCK;
-            let mut start = 0u32;
-            let mut bright = row[0] > thresholds.at_block(0, by);
-            for (bx, chunk) in row.chunks(BLOCK).enumerate() {
-                let t = thresholds.at_block(bx, by);
-                for (i, &v) in chunk.iter().enumerate() {
-                    let b = v > t;
-                    if b != bright {
-                        let c = (bx * BLOCK + i) as u32;
-                        self.runs.push(Run {
-                            row: r as u32,
-                            start,
-                            end: c,
-                            bright,
-                        });
-                        start = c;
-                        bright = b;
-                    }
-                }
-            }
-            self.runs.push(Run {
-                row: r as u32,
-                start,
-                end: w as u32,
-                bright,
-            });
+            row_runs(row, r, map, &self.thresholds, &mut self.runs);
         }
         self.row_start.push(self.runs.len());
     }
@@ -412,6 +373,53 @@ impl Regions {
     }
 }
 
+/// Appends the runs of row `r`: 8 pixels at a time, as a bit mask compared with the previous
+/// pixel's bit, so that only colour changes cost anything.
+fn row_runs(row: &[f32], r: usize, map: &ThresholdMap, thresholds: &[f32], out: &mut Vec<Run>) {
+    let by = r / BLOCK;
+    let first = by * map.blocks.0;
+    let mut start = 0u32;
+    let mut bright = row.first().is_some_and(|&v| v > thresholds[first]);
+    let mut previous = bright as u32;
+    for (bx, chunk) in row.chunks(BLOCK).enumerate() {
+        let b = first + bx;
+        let t = thresholds[b];
+        let full = (1u32 << chunk.len()) - 1;
+        // Most blocks lie wholly on one side of their threshold: no pixel to look at.
+        let mask = if map.max[b] <= t {
+            0
+        } else if map.min[b] > t {
+            full
+        } else {
+            chunk
+                .iter()
+                .enumerate()
+                .fold(0u32, |m, (i, &v)| m | (((v > t) as u32) << i))
+        };
+        // Bit i set where pixel i differs from pixel i − 1.
+        let mut changes = (mask ^ ((mask << 1) | previous)) & full;
+        previous = (mask >> (chunk.len() - 1)) & 1;
+        while changes != 0 {
+            let c = (bx * BLOCK) as u32 + changes.trailing_zeros();
+            out.push(Run {
+                row: r as u32,
+                start,
+                end: c,
+                bright,
+            });
+            start = c;
+            bright = !bright;
+            changes &= changes - 1;
+        }
+    }
+    out.push(Run {
+        row: r as u32,
+        start,
+        end: row.len() as u32,
+        bright,
+    });
+}
+
 fn find(label: &mut [u32], mut i: usize) -> usize {
     while label[i] as usize != i {
         let p = label[i] as usize;
@@ -436,18 +444,25 @@ mod tests {
     use super::*;
 
     #[test]
-    fn sliding_extreme_matches_brute_force() {
-        let v: Vec<f32> = (0..37).map(|i| ((i * 7919) % 23) as f32).collect();
-        for r in [0, 1, 2, 5, 40] {
-            let mut out = vec![0.0; v.len()];
-            sliding_extreme(&v, r, &mut out, f32::max);
-            for i in 0..v.len() {
-                let lo = i.saturating_sub(r);
-                let hi = (i + r).min(v.len() - 1);
-                let m = v[lo..=hi].iter().copied().fold(f32::MIN, f32::max);
-                assert_eq!(out[i], m, "r {r} i {i}");
+    fn pooling_and_neighbourhoods_match_brute_force() {
+        let (w, h) = (7, 5);
+        let v: Vec<f32> = (0..w * h).map(|i| ((i * 7919) % 23) as f32).collect();
+        let near = extreme_3x3(&v, w, h, f32::max);
+        let pooled = pool_2x2(&v, w, h, f32::min);
+        for y in 0..h {
+            for x in 0..w {
+                let mut m = f32::MIN;
+                for yy in y.saturating_sub(1)..(y + 2).min(h) {
+                    for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                        m = m.max(v[yy * w + xx]);
+                    }
+                }
+                assert_eq!(near[y * w + x], m);
             }
         }
+        assert_eq!(pooled.len(), 4 * 3);
+        assert_eq!(pooled[0], v[0].min(v[1]).min(v[w]).min(v[w + 1]));
+        assert_eq!(pooled[3], v[6].min(v[w + 6]));
     }
 
     #[test]
@@ -473,7 +488,7 @@ mod tests {
         let mut map = ThresholdMap::default();
         map.compute(&image, None);
         let mut regions = Regions::default();
-        regions.label(&image, &map);
+        regions.label(&image, &map, 0.5);
         let centre = regions
             .regions
             .iter()

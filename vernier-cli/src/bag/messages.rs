@@ -135,6 +135,8 @@ pub struct MarkerPose {
     pub covariance: [[f64; 6]; 6],
     /// Another marker of the image has the same ID.
     pub duplicate_id: bool,
+    /// Confidence of the coarse decoding, `[0, 1]`; −1 for periodic grids (none).
+    pub decode_confidence: f64,
 }
 
 /// `vernier_ros/MarkerPoseArray` (msg/MarkerPoseArray.msg).

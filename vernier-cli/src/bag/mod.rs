@@ -284,6 +284,7 @@ impl Replay {
                                 quality: m.quality,
                                 covariance: si.covariance(self.period * scale, window),
                                 duplicate_id: m.duplicate_id,
+                                decode_confidence: m.decode_confidence.unwrap_or(-1.0),
                             }
                         })
                         .collect(),

@@ -28,5 +28,6 @@ with AnyReader([Path(sys.argv[1])]) as reader:
             out['markers'] = [{'id': int(m.id), 'pose': pose(m.pose),
                                'pixel_size': m.pixel_size, 'quality': m.quality,
                                'covariance': [float(v) for v in m.covariance],
-                               'duplicate_id': bool(m.duplicate_id)} for m in msg.markers]
+                               'duplicate_id': bool(m.duplicate_id),
+                               'decode_confidence': m.decode_confidence} for m in msg.markers]
         print(json.dumps(out))

@@ -21,6 +21,8 @@ use crate::binarize::{Region, Regions, ThresholdMap};
 use crate::grey_image::{GreyImage, Polarity};
 use nalgebra::Vector2;
 
+/// Images with at least this many pixels are labelled at their threshold levels in parallel.
+const PARALLEL_MIN_PIXELS: usize = 1 << 18;
 /// Closest accepted distance between two finders of the same size, modules (see
 /// [`crowded`]; two markers touching edge to edge have finders 7 modules apart).
 const MIN_SPACING: f64 = 10.0;
@@ -58,7 +60,8 @@ pub struct Finder {
 #[derive(Default)]
 pub(crate) struct FinderScanner {
     thresholds: ThresholdMap,
-    regions: Regions,
+    /// One labelling per threshold level (they run in parallel on large images).
+    regions: [Regions; LEVELS.len()],
 }
 
 impl FinderScanner {
@@ -70,13 +73,24 @@ impl FinderScanner {
         }
         self.thresholds
             .compute(image, min_contrast.map(|c| c as f32));
-        let mut found: Vec<Finder> = Vec::new();
-        for level in LEVELS {
-            self.thresholds.set_level(level);
-            self.regions.label(image, &self.thresholds);
-            let regions = &self.regions.regions;
-            found.extend(regions.iter().filter_map(|c| finder_at(regions, c)));
-        }
+        let map = &self.thresholds;
+        let scan = |(labels, level): (&mut Regions, f32)| -> Vec<Finder> {
+            labels.label(image, map, level);
+            let regions = &labels.regions;
+            regions.iter().filter_map(|c| finder_at(regions, c)).collect()
+        };
+        let jobs = self.regions.iter_mut().zip(LEVELS);
+        let found: Vec<Finder> = if image.width() * image.height() >= PARALLEL_MIN_PIXELS {
+            std::thread::scope(|s| {
+                let handles: Vec<_> = jobs.map(|job| s.spawn(move || scan(job))).collect();
+                handles
+                    .into_iter()
+                    .flat_map(|h| h.join().unwrap_or_default())
+                    .collect()
+            })
+        } else {
+            jobs.flat_map(scan).collect()
+        };
         let unique = dedup(found);
         unique
             .iter()

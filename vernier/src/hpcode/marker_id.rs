@@ -144,6 +144,7 @@ fn read_edge(
             (levels[i] - 0.5 * (hi + lo)) / half
         })
         .collect();
+    log::trace!("edge (transposed {transposed}) dot margins {signed:.2?}");
     // levels[i] is dot column 4 + i; bit k is dot column n − 5 − k.
     let bits: Vec<bool> = signed.iter().rev().map(|&s| s < 0.0).collect();
     let margin = signed
