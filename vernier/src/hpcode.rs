@@ -36,6 +36,9 @@ use finders::FinderScanner;
 use nalgebra::Vector2;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
+/// Smallest [`marker_id::grid_precheck`] score for a candidate to be analysed (½ on texture
+/// that is not a grid, ~1 on a dot field; dust and hair may spoil some dots).
+const MIN_PRECHECK: f64 = 0.7;
 /// Most two-finder hypotheses tried per image (each costs one window analysis).
 const MAX_HYPOTHESES: usize = 48;
 /// Smallest fraction of the marker's dots and gaps that must look right
@@ -347,6 +350,18 @@ impl HpCodeDetector {
             );
             Ok(None)
         };
+        // Period steps along the marker axes as the finders see them.
+        let steps = |leg: Vector2<f64>| leg.normalize() * 2.0 * triple.module_px;
+        let precheck = marker_id::grid_precheck(
+            image,
+            triple.polarity,
+            coarse,
+            steps(triple.right - triple.corner),
+            steps(triple.bottom - triple.corner),
+        );
+        if precheck < MIN_PRECHECK {
+            return reject(&format!("no dot grid around the centre ({precheck:.2})"));
+        }
         let size = self.window_size(triple);
         let mut first =
             self.analyze_window(image, triple, coarse, size, self.apodize(triple, size))?;

@@ -77,7 +77,10 @@ impl FinderScanner {
         let scan = |(labels, level): (&mut Regions, f32)| -> Vec<Finder> {
             labels.label(image, map, level);
             let regions = &labels.regions;
-            regions.iter().filter_map(|c| finder_at(regions, c)).collect()
+            regions
+                .iter()
+                .filter_map(|c| finder_at(regions, c))
+                .collect()
         };
         let jobs = self.regions.iter_mut().zip(LEVELS);
         let found: Vec<Finder> = if image.width() * image.height() >= PARALLEL_MIN_PIXELS {

@@ -207,6 +207,45 @@ pub(crate) fn grid_support(image: &GreyImage, polarity: Polarity, grid: &DotGrid
     good as f64 / (dots.len() + gaps.len()) as f64
 }
 
+/// Cheap test, before any phase analysis, that a dot grid surrounds `center`: on the 7×7
+/// lattice of period steps `step_x`, `step_y` (from the finders' size and directions), the
+/// fraction of lattice points brighter (in material) than the mean of the four cells between
+/// them and their neighbours, for the better of the two lattice phases (the centre is a dot,
+/// or the gap between four dots, depending on `W`). About ½ on texture that is not a grid,
+/// near 1 on a marker's dot field; the finders locate the centre to a fraction of a period.
+pub(crate) fn grid_precheck(
+    image: &GreyImage,
+    polarity: Polarity,
+    center: Vector2<f64>,
+    step_x: Vector2<f64>,
+    step_y: Vector2<f64>,
+) -> f64 {
+    let grid = DotGrid {
+        center,
+        step_x,
+        step_y,
+        size: 7,
+    };
+    let score = |phase: f64| -> Option<f64> {
+        let mut above = 0usize;
+        for r in 0..7 {
+            for c in 0..7 {
+                let (r, c) = (r as f64 + phase, c as f64 + phase);
+                let dot = dot_level(image, polarity, grid.at(r, c), &grid)?;
+                let mut gaps = 0.0;
+                for (dr, dc) in [(-0.5, -0.5), (-0.5, 0.5), (0.5, -0.5), (0.5, 0.5)] {
+                    gaps += dot_level(image, polarity, grid.at(r + dr, c + dc), &grid)?;
+                }
+                above += (dot > gaps / 4.0) as usize;
+            }
+        }
+        Some(above as f64 / 49.0)
+    };
+    score(0.0)
+        .unwrap_or(0.0)
+        .max(score(0.5).unwrap_or(0.0))
+}
+
 /// Whether the four corners of the marker show what they must: a finder square at the three
 /// finder corners and plain dots at the fourth. A finder differs from a block of dots by its
 /// *bridges*: the cells between two neighbouring dot positions are material in its ring and
@@ -250,7 +289,10 @@ pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &D
     // middle finder corner.
     let mut seen: Vec<f64> = finders.iter().flatten().copied().collect();
     seen.sort_by(f64::total_cmp);
-    let middle = seen.get(seen.len().saturating_sub(2)).copied().unwrap_or(0.0);
+    let middle = seen
+        .get(seen.len().saturating_sub(2))
+        .copied()
+        .unwrap_or(0.0);
     log::trace!("corner bridges: finders {finders:?}, dot corner {dot_corner:.3}");
     seen.len() == 3 && middle >= 0.3 && dot_corner < (0.5 * middle).min(0.4)
 }
