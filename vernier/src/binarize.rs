@@ -59,18 +59,24 @@ impl ThresholdMap {
         self.max.clear();
         self.max.resize(bw * bh, f32::NEG_INFINITY);
         let px = image.pixels();
-        for (r, row) in px.chunks_exact(w).enumerate() {
-            let by = r / BLOCK;
-            let lo = &mut self.min[by * bw..(by + 1) * bw];
-            let hi = &mut self.max[by * bw..(by + 1) * bw];
-            for ((chunk, l), h) in row.chunks(BLOCK).zip(lo.iter_mut()).zip(hi.iter_mut()) {
-                // Branch-free selects (vectorised; `f32::min` is not, for its NaN rules).
-                for &v in chunk {
-                    *l = if v < *l { v } else { *l };
-                    *h = if v > *h { v } else { *h };
-                }
+        // Block rows are independent: two bands on two threads for large images.
+        let band_rows = if w * h >= PARALLEL_MIN_PIXELS {
+            bh.div_ceil(2)
+        } else {
+            bh
+        };
+        std::thread::scope(|scope| {
+            let bands = self
+                .min
+                .chunks_mut(band_rows * bw)
+                .zip(self.max.chunks_mut(band_rows * bw))
+                .enumerate();
+            for (band, (lo, hi)) in bands {
+                let rows = &px[(band * band_rows * BLOCK * w).min(px.len())
+                    ..(((band + 1) * band_rows * BLOCK) * w).min(px.len())];
+                scope.spawn(move || block_extremes(rows, w, lo, hi));
             }
-        }
+        });
         self.floor = min_contrast.unwrap_or_else(|| {
             // The quietest tenth of the blocks sees only noise in any real image; the range of
             // 64 Gaussian samples is about 4.9 standard deviations.
@@ -126,7 +132,10 @@ impl ThresholdMap {
             if !open || (cw <= 3 && ch <= 3) {
                 break;
             }
-            (lo, hi) = (pool_2x2(&lo, cw, ch, f32::min), pool_2x2(&hi, cw, ch, f32::max));
+            (lo, hi) = (
+                pool_2x2(&lo, cw, ch, f32::min),
+                pool_2x2(&hi, cw, ch, f32::max),
+            );
             (cw, ch) = (cw.div_ceil(2), ch.div_ceil(2));
         }
         self.low.clear();
@@ -155,6 +164,26 @@ impl ThresholdMap {
         }
     }
 }
+
+/// Minimum and maximum of each 8×8 block of the rows `px` (`w` wide) into `lo`, `hi`.
+fn block_extremes(px: &[f32], w: usize, lo: &mut [f32], hi: &mut [f32]) {
+    let bw = w.div_ceil(BLOCK);
+    for (r, row) in px.chunks_exact(w).enumerate() {
+        let by = r / BLOCK;
+        let lo = &mut lo[by * bw..(by + 1) * bw];
+        let hi = &mut hi[by * bw..(by + 1) * bw];
+        for ((chunk, l), h) in row.chunks(BLOCK).zip(lo.iter_mut()).zip(hi.iter_mut()) {
+            // Branch-free selects (vectorised; `f32::min` is not, for its NaN rules).
+            for &v in chunk {
+                *l = if v < *l { v } else { *l };
+                *h = if v > *h { v } else { *h };
+            }
+        }
+    }
+}
+
+/// Images with at least this many pixels get their block extremes on two threads.
+const PARALLEL_MIN_PIXELS: usize = 1 << 20;
 
 /// `op`-extreme over the 3×3 cells around each cell of a `w × h` grid (clipped at borders).
 fn extreme_3x3(v: &[f32], w: usize, h: usize, op: fn(f32, f32) -> f32) -> Vec<f32> {
