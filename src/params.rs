@@ -9,7 +9,7 @@ use ros2_client::ParameterValue;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use vernier::detector::{DetectorConfig, DetectorSettings, MarkerKind};
-use vernier::{Detector, Polarity};
+use vernier::Detector;
 
 /// One declared parameter.
 #[derive(Clone, Debug)]

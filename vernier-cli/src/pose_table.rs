@@ -358,6 +358,7 @@ mod tests {
                 y_px: Some(-3.0),
                 quality: Some(0.9),
                 duplicate_id: Some(false),
+                decode_confidence: Some(0.75),
                 time_ms: 12.5,
                 error: None,
             },

@@ -330,7 +330,7 @@ impl Regions {
         let mut region_of_run = vec![0u32; n];
         let mut sums: Vec<[f64; 3]> = Vec::new();
         self.regions.clear();
-        for k in 0..n {
+        for (k, slot) in region_of_run.iter_mut().enumerate() {
             let root = find(&mut self.label, k);
             if index[root] == u32::MAX {
                 index[root] = self.regions.len() as u32;
@@ -347,7 +347,7 @@ impl Regions {
                 sums.push([0.0; 3]);
             }
             let g = index[root] as usize;
-            region_of_run[k] = g as u32;
+            *slot = g as u32;
             let run = self.runs[k];
             let len = (run.end - run.start) as f64;
             let reg = &mut self.regions[g];

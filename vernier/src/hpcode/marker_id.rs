@@ -172,7 +172,7 @@ pub(crate) fn grid_support(image: &GreyImage, polarity: Polarity, grid: &DotGrid
     }
     // Dot (r, c) lies in a finder's 4×4 dots at three corners.
     let in_finder =
-        |r: usize, c: usize| (r < 4 && c < 4) || (r < 4 && c + 4 >= n) || (r + 4 >= n && c < 4);
+        |r: usize, c: usize| (r < 4 && (c < 4 || c + 4 >= n)) || (r + 4 >= n && c < 4);
     let mut dots = Vec::with_capacity(n * n);
     let mut gaps = Vec::with_capacity(n * n);
     for r in 1..n {
@@ -198,7 +198,7 @@ pub(crate) fn grid_support(image: &GreyImage, polarity: Polarity, grid: &DotGrid
         }
     }
     let (hi, lo) = (median(&mut dots.clone()), median(&mut gaps.clone()));
-    if !(hi > lo) {
+    if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
         return 0.0;
     }
     let threshold = 0.5 * (hi + lo);
