@@ -82,9 +82,10 @@ pub(crate) fn read_id(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> 
     let top = read_edge(image, polarity, grid, false)?;
     let left = read_edge(image, polarity, grid, true)?;
     // Seen from the front the left column is complete and the top row holds the ID; mirrored,
-    // the other way round. The edge that is more clearly complete decides (a dot spoiled by
-    // dust or hair then costs confidence instead of flipping the marker).
-    let mirrored = top.completeness > left.completeness;
+    // the other way round. Front unless the left column misses a dot and the top row is the
+    // more clearly complete edge (a dot spoiled by dust or hair then costs confidence instead
+    // of flipping the marker; a marker with ID 0 reads the same both ways and stays front).
+    let mirrored = left.completeness < 0.0 && top.completeness > left.completeness;
     let (id_edge, complete_edge) = if mirrored {
         (&left, &top)
     } else {
@@ -171,8 +172,7 @@ pub(crate) fn grid_support(image: &GreyImage, polarity: Polarity, grid: &DotGrid
         return 0.0;
     }
     // Dot (r, c) lies in a finder's 4×4 dots at three corners.
-    let in_finder =
-        |r: usize, c: usize| (r < 4 && (c < 4 || c + 4 >= n)) || (r + 4 >= n && c < 4);
+    let in_finder = |r: usize, c: usize| (r < 4 && (c < 4 || c + 4 >= n)) || (r + 4 >= n && c < 4);
     let mut dots = Vec::with_capacity(n * n);
     let mut gaps = Vec::with_capacity(n * n);
     for r in 1..n {
@@ -241,9 +241,7 @@ pub(crate) fn grid_precheck(
         }
         Some(above as f64 / 49.0)
     };
-    score(0.0)
-        .unwrap_or(0.0)
-        .max(score(0.5).unwrap_or(0.0))
+    score(0.0).unwrap_or(0.0).max(score(0.5).unwrap_or(0.0))
 }
 
 /// Whether the four corners of the marker show what they must: a finder square at the three

@@ -1,0 +1,178 @@
+//! Matching detections to the ground truth of one scene.
+//!
+//! A detection matches a truth marker of the scene's family when its origin is within
+//! `max(3 px, 0.5 period)` of the truth origin (nearest pairs first, one detection per
+//! marker). Then: matched with the right ID = found (position and angle errors recorded),
+//! another ID = wrong ID, matched to a marker cut by the border = ignored, unmatched = false
+//! marker; expected markers left unmatched = missed.
+
+use crate::markers::{Expectation, TruthMarker};
+use crate::scene::Scene;
+use vernier::phase::wrap_to_pi;
+use vernier::MarkerPose;
+
+/// Outcome of one detection.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Verdict {
+    /// Matched truth `index` with its ID.
+    Found {
+        /// Index into the scene's truth.
+        truth: usize,
+        /// Origin distance, pixels.
+        position_error: f64,
+        /// |angle difference|, radians.
+        angle_error: f64,
+    },
+    /// Matched truth `index`, another ID.
+    WrongId {
+        /// Index into the scene's truth.
+        truth: usize,
+    },
+    /// Matched a marker cut by the border.
+    Ignored {
+        /// Index into the scene's truth.
+        truth: usize,
+    },
+    /// Matched nothing.
+    False,
+}
+
+/// Result of one scene.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SceneResult {
+    /// Expected markers.
+    pub markers: usize,
+    /// Found with the right ID.
+    pub found: usize,
+    /// Matched with another ID.
+    pub wrong_id: usize,
+    /// Detections matching nothing.
+    pub false_markers: usize,
+    /// Expected markers not matched.
+    pub missed: usize,
+    /// Position errors of the found markers, pixels.
+    pub position_errors: Vec<f64>,
+    /// Angle errors of the found markers, radians.
+    pub angle_errors: Vec<f64>,
+    /// One verdict per detection.
+    pub verdicts: Vec<Verdict>,
+    /// Detector error or panic message, if detection failed.
+    pub error: Option<String>,
+    /// Detection time, milliseconds.
+    pub detect_ms: f64,
+}
+
+impl SceneResult {
+    /// True when something was missed, wrong or false, or the detector failed.
+    pub fn failed(&self) -> bool {
+        self.error.is_some() || self.missed > 0 || self.wrong_id > 0 || self.false_markers > 0
+    }
+}
+
+/// Largest angle error of a marker counted as found, rad: beyond it the pose is wrong (a
+/// quarter-turn reading), counted with the wrong IDs. Perspective biases stay far below it.
+pub const MAX_ANGLE_ERROR: f64 = 0.05;
+
+/// Match radius around a truth origin, pixels.
+pub fn match_radius(truth: &TruthMarker) -> f64 {
+    (0.5 * truth.period_px).max(3.0)
+}
+
+/// Scores `detections` (or a detector failure) against `scene`'s truth.
+pub fn evaluate(
+    scene: &Scene,
+    detections: std::result::Result<&[MarkerPose], String>,
+    detect_ms: f64,
+) -> SceneResult {
+    let truth = &scene.truth;
+    let markers = truth
+        .iter()
+        .filter(|t| t.expectation == Expectation::Expected && t.family == scene.spec.family)
+        .count();
+    let detections = match detections {
+        Ok(d) => d,
+        Err(e) => {
+            return SceneResult {
+                markers,
+                found: 0,
+                wrong_id: 0,
+                false_markers: 0,
+                missed: markers,
+                position_errors: Vec::new(),
+                angle_errors: Vec::new(),
+                verdicts: Vec::new(),
+                error: Some(e),
+                detect_ms,
+            }
+        }
+    };
+    // Candidate pairs within the match radius, nearest first.
+    let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
+    for (di, d) in detections.iter().enumerate() {
+        for (ti, t) in truth.iter().enumerate() {
+            if t.family != scene.spec.family || t.expectation == Expectation::Foreign {
+                continue;
+            }
+            let dist = (d.origin_px.x - t.origin_px[0]).hypot(d.origin_px.y - t.origin_px[1]);
+            if dist < match_radius(t) {
+                pairs.push((dist, di, ti));
+            }
+        }
+    }
+    pairs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut verdicts = vec![Verdict::False; detections.len()];
+    let mut det_used = vec![false; detections.len()];
+    let mut truth_used = vec![false; truth.len()];
+    for (dist, di, ti) in pairs {
+        if det_used[di] || truth_used[ti] {
+            continue;
+        }
+        det_used[di] = true;
+        truth_used[ti] = true;
+        let t = &truth[ti];
+        let d = &detections[di];
+        verdicts[di] = if t.expectation == Expectation::Ignored {
+            Verdict::Ignored { truth: ti }
+        } else if d.id == t.id && wrap_to_pi(d.pose.alpha - t.angle).abs() < MAX_ANGLE_ERROR {
+            Verdict::Found {
+                truth: ti,
+                position_error: dist,
+                angle_error: wrap_to_pi(d.pose.alpha - t.angle).abs(),
+            }
+        } else {
+            // A wrong ID, or the right ID with the marker turned (a quarter-turn reading of
+            // a symmetric ID): a wrong answer either way.
+            Verdict::WrongId { truth: ti }
+        };
+    }
+    let mut r = SceneResult {
+        markers,
+        found: 0,
+        wrong_id: 0,
+        false_markers: 0,
+        missed: 0,
+        position_errors: Vec::new(),
+        angle_errors: Vec::new(),
+        verdicts,
+        error: None,
+        detect_ms,
+    };
+    for v in &r.verdicts {
+        match *v {
+            Verdict::Found {
+                position_error,
+                angle_error,
+                ..
+            } => {
+                r.found += 1;
+                r.position_errors.push(position_error);
+                r.angle_errors.push(angle_error);
+            }
+            Verdict::WrongId { .. } => r.wrong_id += 1,
+            Verdict::Ignored { .. } => {}
+            Verdict::False => r.false_markers += 1,
+        }
+    }
+    r.missed = markers - r.found - r.wrong_id;
+    r
+}

@@ -1,0 +1,371 @@
+//! Running many scenes: generation on worker threads, detection (timed) on the calling thread
+//! through `vernier::Detector` built from the scene's `DetectorSettings`, scoring, and the
+//! per-family, per-category tallies.
+
+use crate::error::{Result, StressError};
+use crate::evaluate::{evaluate, SceneResult};
+use crate::markers::Family;
+use crate::scene::{Category, Generator, Scene, SceneSpec};
+use std::collections::hash_map::Entry;
+use std::collections::{BTreeMap, HashMap};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::mpsc;
+use std::time::Instant;
+use vernier::{Detector, MarkerPose};
+
+/// Categories whose position error must stay below [`ACCURACY_LIMIT_PX`] (no perspective,
+/// no noise: clean and blurred renders).
+pub const ACCURACY_CATEGORIES: [&str; 2] = ["clean", "blur"];
+
+/// Position error target on [`ACCURACY_CATEGORIES`], pixels.
+pub const ACCURACY_LIMIT_PX: f64 = 2e-3;
+
+/// The first `count` seeds from `start` on (consecutive) whose scene matches the filters.
+pub fn select_seeds(
+    start: u64,
+    count: usize,
+    family: Option<Family>,
+    category: Option<Category>,
+) -> Vec<u64> {
+    (start..)
+        .filter(|&s| {
+            let spec = SceneSpec::from_seed(s);
+            family.is_none_or(|f| spec.family == f) && category.is_none_or(|c| spec.category == c)
+        })
+        .take(count)
+        .collect()
+}
+
+/// One scene run: the scene, what the detector said, and its score.
+pub struct Outcome {
+    /// The scene (image and truth).
+    pub scene: Scene,
+    /// Detections (empty when the detector failed).
+    pub detections: Vec<MarkerPose>,
+    /// Score.
+    pub result: SceneResult,
+}
+
+impl Outcome {
+    /// Failed in the sense of the failing-seed lists: something missed, wrong or false, or
+    /// (accuracy categories) a position error at or above [`ACCURACY_LIMIT_PX`].
+    pub fn failed(&self) -> bool {
+        self.result.failed()
+            || (ACCURACY_CATEGORIES.contains(&self.scene.spec.category.name())
+                && self
+                    .result
+                    .position_errors
+                    .iter()
+                    .any(|&e| e >= ACCURACY_LIMIT_PX))
+    }
+}
+
+/// Detectors by (family, code size), kept between scenes (FFT plans).
+#[derive(Default)]
+pub struct Detectors {
+    cache: HashMap<(Family, Option<usize>), Detector>,
+}
+
+impl Detectors {
+    /// Detects on `scene` with the settings a user would give; returns the detections (or
+    /// the error / panic message) and the detection time in milliseconds (construction
+    /// excluded).
+    pub fn detect(
+        &mut self,
+        generator: &Generator,
+        scene: &Scene,
+    ) -> (std::result::Result<Vec<MarkerPose>, String>, f64) {
+        let key = (scene.spec.family, scene.half_periods);
+        let detector = match self.cache.entry(key) {
+            Entry::Occupied(e) => e.into_mut(),
+            Entry::Vacant(e) => {
+                let built = scene
+                    .detector_settings(generator.stamps())
+                    .to_config()
+                    .and_then(Detector::new);
+                match built {
+                    Ok(d) => e.insert(d),
+                    Err(err) => return (Err(format!("detector settings: {err}")), 0.0),
+                }
+            }
+        };
+        let start = Instant::now();
+        let out = catch_unwind(AssertUnwindSafe(|| detector.detect(&scene.image)));
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        match out {
+            Ok(Ok(d)) => (Ok(d), ms),
+            Ok(Err(e)) => (Err(format!("detector error: {e}")), ms),
+            Err(panic) => {
+                self.cache.remove(&key);
+                let msg = panic
+                    .downcast_ref::<String>()
+                    .cloned()
+                    .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                    .unwrap_or_else(|| "non-string panic".into());
+                (Err(format!("detector panic: {msg}")), ms)
+            }
+        }
+    }
+}
+
+/// Generates the scenes of `seeds` on `threads` worker threads and detects on each (on this
+/// thread, one at a time, so the timing is the detector's alone). `visit` sees every
+/// outcome as it completes (in completion order); the outcomes are not kept.
+pub fn run(
+    generator: &Generator,
+    seeds: &[u64],
+    threads: usize,
+    visit: &mut dyn FnMut(Outcome),
+) -> Result<()> {
+    let next = AtomicUsize::new(0);
+    let threads = threads.clamp(1, 64);
+    let mut detectors = Detectors::default();
+    std::thread::scope(|s| -> Result<()> {
+        let (tx, rx) = mpsc::sync_channel::<Result<Scene>>(threads * 2);
+        for _ in 0..threads {
+            let tx = tx.clone();
+            let next = &next;
+            s.spawn(move || loop {
+                let i = next.fetch_add(1, Ordering::Relaxed);
+                let Some(&seed) = seeds.get(i) else { break };
+                let scene = catch_unwind(AssertUnwindSafe(|| generator.generate(seed)))
+                    .unwrap_or_else(|_| {
+                        Err(StressError::new(format!("seed {seed}: generator panic")))
+                    });
+                if tx.send(scene).is_err() {
+                    break;
+                }
+            });
+        }
+        drop(tx);
+        for scene in rx {
+            let scene = match scene {
+                Ok(s) => s,
+                Err(e) => {
+                    // Stop the workers, then report.
+                    next.store(seeds.len(), Ordering::Relaxed);
+                    return Err(e);
+                }
+            };
+            let (detections, ms) = detectors.detect(generator, &scene);
+            let result = evaluate(&scene, detections.as_deref().map_err(|e| e.clone()), ms);
+            visit(Outcome {
+                detections: detections.unwrap_or_default(),
+                scene,
+                result,
+            });
+        }
+        Ok(())
+    })
+}
+
+/// Counts of one (family, category) cell.
+#[derive(Clone, Debug, Default)]
+pub struct Tally {
+    /// Scenes.
+    pub scenes: usize,
+    /// Expected markers.
+    pub markers: usize,
+    /// Found with the right ID.
+    pub found: usize,
+    /// Matched with a wrong ID.
+    pub wrong_id: usize,
+    /// Detections matching no marker.
+    pub false_markers: usize,
+    /// Expected markers not found.
+    pub missed: usize,
+    /// Scenes where the detector returned an error or panicked.
+    pub errors: usize,
+    /// Position errors of the found markers, pixels.
+    pub position_errors: Vec<f64>,
+    /// Largest angle error, radians.
+    pub max_angle_error: f64,
+    /// Total detection time, milliseconds.
+    pub detect_ms: f64,
+    /// Seeds of the failing scenes (see [`Outcome::failed`]), in run order.
+    pub failing: Vec<u64>,
+}
+
+impl Tally {
+    fn add(&mut self, o: &Outcome) {
+        let r = &o.result;
+        self.scenes += 1;
+        self.markers += r.markers;
+        self.found += r.found;
+        self.wrong_id += r.wrong_id;
+        self.false_markers += r.false_markers;
+        self.missed += r.missed;
+        self.errors += usize::from(r.error.is_some());
+        self.position_errors.extend(&r.position_errors);
+        self.max_angle_error = r
+            .angle_errors
+            .iter()
+            .fold(self.max_angle_error, |a, &b| a.max(b));
+        self.detect_ms += r.detect_ms;
+        if o.failed() {
+            self.failing.push(o.scene.spec.seed);
+        }
+    }
+
+    fn merge(&mut self, other: &Tally) {
+        self.scenes += other.scenes;
+        self.markers += other.markers;
+        self.found += other.found;
+        self.wrong_id += other.wrong_id;
+        self.false_markers += other.false_markers;
+        self.missed += other.missed;
+        self.errors += other.errors;
+        self.position_errors.extend(&other.position_errors);
+        self.max_angle_error = self.max_angle_error.max(other.max_angle_error);
+        self.detect_ms += other.detect_ms;
+        self.failing.extend(&other.failing);
+    }
+
+    /// Found fraction of the expected markers (1 when there are none).
+    pub fn found_fraction(&self) -> f64 {
+        if self.markers == 0 {
+            1.0
+        } else {
+            self.found as f64 / self.markers as f64
+        }
+    }
+
+    /// `(median, p99, max)` of the position errors (nearest rank); `None` without any.
+    pub fn position_stats(&self) -> Option<(f64, f64, f64)> {
+        let mut e = self.position_errors.clone();
+        if e.is_empty() {
+            return None;
+        }
+        e.sort_by(f64::total_cmp);
+        let rank = |q: f64| e[((q * e.len() as f64).ceil() as usize).clamp(1, e.len()) - 1];
+        Some((rank(0.5), rank(0.99), e[e.len() - 1]))
+    }
+}
+
+/// All tallies of a run, plus the generation-time profile.
+#[derive(Clone, Debug, Default)]
+pub struct Report {
+    /// Per (family, category).
+    pub cells: BTreeMap<(Family, Category), Tally>,
+    /// Generation time per stage: (total ms, scenes using it).
+    pub generation: BTreeMap<&'static str, (f64, usize)>,
+    /// Total generation time, ms.
+    pub generation_ms: f64,
+}
+
+impl Report {
+    /// Adds one outcome.
+    pub fn add(&mut self, o: &Outcome) {
+        let spec = o.scene.spec;
+        self.cells
+            .entry((spec.family, spec.category))
+            .or_default()
+            .add(o);
+        for &(stage, ms) in &o.scene.timings {
+            let e = self.generation.entry(stage).or_default();
+            e.0 += ms;
+            e.1 += 1;
+            self.generation_ms += ms;
+        }
+    }
+
+    /// The tally of one family over every category.
+    pub fn family_total(&self, family: Family) -> Tally {
+        let mut t = Tally::default();
+        for ((f, _), cell) in &self.cells {
+            if *f == family {
+                t.merge(cell);
+            }
+        }
+        t
+    }
+
+    /// Markdown table of `family`, one row per category and a total row.
+    pub fn markdown(&self, family: Family) -> String {
+        let mut out = format!(
+            "### {}\n\n| category | scenes | markers | found % | wrong ID or pose | false markers | missed | \
+             position error median / p99 / max (px) | max angle error (rad) | detect ms/scene |\n\
+             |---|---:|---:|---:|---:|---:|---:|---|---:|---:|\n",
+            family.name()
+        );
+        let row = |name: &str, t: &Tally| {
+            let pos = match t.position_stats() {
+                Some((m, p, x)) => format!("{m:.1e} / {p:.1e} / {x:.1e}"),
+                None => "—".into(),
+            };
+            let errors = if t.errors > 0 {
+                format!(" ({} det. errors)", t.errors)
+            } else {
+                String::new()
+            };
+            format!(
+                "| {name} | {} | {} | {:.1} | {} | {} | {}{errors} | {pos} | {:.1e} | {:.1} |\n",
+                t.scenes,
+                t.markers,
+                100.0 * t.found_fraction(),
+                t.wrong_id,
+                t.false_markers,
+                t.missed,
+                t.max_angle_error,
+                t.detect_ms / t.scenes.max(1) as f64
+            )
+        };
+        for ((f, c), t) in &self.cells {
+            if *f == family {
+                out.push_str(&row(c.name(), t));
+            }
+        }
+        out.push_str(&row("**all**", &self.family_total(family)));
+        out
+    }
+
+    /// The failing seeds, first `limit` per (family, category).
+    pub fn failing_list(&self, limit: usize) -> String {
+        let mut out = String::new();
+        for ((f, c), t) in &self.cells {
+            if t.failing.is_empty() {
+                continue;
+            }
+            let shown: Vec<String> = t
+                .failing
+                .iter()
+                .take(limit)
+                .map(|s| s.to_string())
+                .collect();
+            out.push_str(&format!(
+                "- {} / {}: {} failing: {}{}\n",
+                f.name(),
+                c.name(),
+                t.failing.len(),
+                shown.join(" "),
+                if t.failing.len() > limit { " …" } else { "" }
+            ));
+        }
+        if out.is_empty() {
+            out.push_str("- none\n");
+        }
+        out
+    }
+
+    /// Mean generation time per stage (over the scenes using it).
+    pub fn generation_profile(&self) -> String {
+        let mut stages: Vec<_> = self.generation.iter().collect();
+        stages.sort_by(|a, b| b.1 .0.total_cmp(&a.1 .0));
+        let parts: Vec<String> = stages
+            .iter()
+            .map(|(name, (total, n))| {
+                format!(
+                    "{name} {:.0} % ({:.1} ms × {n})",
+                    100.0 * total / self.generation_ms.max(1e-9),
+                    total / (*n).max(1) as f64
+                )
+            })
+            .collect();
+        format!(
+            "generation {:.1} s in all: {}",
+            self.generation_ms / 1e3,
+            parts.join(", ")
+        )
+    }
+}
