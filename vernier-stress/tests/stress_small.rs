@@ -1,0 +1,87 @@
+//! The small, fixed-seed stress suite with the detectors' targets.
+//!
+//! 110 scenes (5 per category and family: seeds 0..110 cycle through the 11 categories of
+//! both families), detected with the settings a CLI user would give. Targets, per family over
+//! every category: ≥ 99 % of the expected markers found with their ID, no wrong ID, no false
+//! marker; on the `clean` and `blur` categories (no perspective, no noise) every position
+//! error below 2e-3 px.
+//!
+//! The stamp bitmaps come from `$VERNIER_DATA_DIR` (default `../shared/data` beside the
+//! workspace): without them the test fails, it does not skip.
+
+use vernier_stress::suite::{ACCURACY_CATEGORIES, ACCURACY_LIMIT_PX};
+use vernier_stress::{run, select_seeds, Family, Generator, Report};
+
+/// First seed of the fixed set.
+const FIRST_SEED: u64 = 0;
+/// 5 scenes per (family, category).
+const SCENES: usize = 110;
+
+#[test]
+fn small_stress_suite_meets_the_targets() {
+    let generator = Generator::from_env().unwrap_or_else(|e| panic!("{e}"));
+    let seeds = select_seeds(FIRST_SEED, SCENES, None, None);
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut report = Report::default();
+    run(&generator, &seeds, threads, &mut |o| report.add(&o))
+        .unwrap_or_else(|e| panic!("scene generation failed: {e}"));
+    for family in Family::ALL {
+        println!("{}", report.markdown(family));
+    }
+    println!("failing seeds (run the bench with `--only SEED --dump DIR`):");
+    println!("{}", report.failing_list(20));
+    println!("{}", report.generation_profile());
+
+    let mut problems = Vec::new();
+    for family in Family::ALL {
+        let t = report.family_total(family);
+        let name = family.name();
+        if t.found_fraction() < 0.99 {
+            problems.push(format!(
+                "{name}: {:.1} % found ({} of {}), target ≥ 99 %",
+                100.0 * t.found_fraction(),
+                t.found,
+                t.markers
+            ));
+        }
+        if t.wrong_id > 0 {
+            problems.push(format!("{name}: {} wrong IDs, target 0", t.wrong_id));
+        }
+        if t.false_markers > 0 {
+            problems.push(format!(
+                "{name}: {} false markers, target 0",
+                t.false_markers
+            ));
+        }
+        for ((f, c), cell) in &report.cells {
+            if *f != family || !ACCURACY_CATEGORIES.contains(&c.name()) {
+                continue;
+            }
+            if let Some((_, _, max)) = cell.position_stats() {
+                if max >= ACCURACY_LIMIT_PX {
+                    problems.push(format!(
+                        "{name} / {}: position error up to {max:.2e} px, target < {ACCURACY_LIMIT_PX:.0e} px",
+                        c.name()
+                    ));
+                }
+            }
+        }
+    }
+    assert!(
+        problems.is_empty(),
+        "stress targets missed:\n{}",
+        problems.join("\n")
+    );
+}
+
+#[test]
+fn scenes_are_reproducible_from_their_seed() {
+    let generator = Generator::from_env().unwrap_or_else(|e| panic!("{e}"));
+    for seed in [3u64, 18, 32] {
+        let a = generator.generate(seed).unwrap_or_else(|e| panic!("{e}"));
+        let b = generator.generate(seed).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(a.image, b.image, "seed {seed}");
+        assert_eq!(a.truth, b.truth, "seed {seed}");
+        assert_eq!(a.spec, b.spec);
+    }
+}
