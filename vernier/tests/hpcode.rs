@@ -320,7 +320,10 @@ fn dark_dot_image_polarity_from_the_finders() {
     // The window's integer centre comes from our finder centres, which may differ by a pixel
     // from the original's Canny-based ones; a 1-px move of this 256-px window turns the
     // band-pass planes by ~2e-5 rad here.
-    assert!((p.alpha - 1.57991).abs() < 5e-5 && (p.pixel_size - 2.39519).abs() < 1e-4, "{p:?}");
+    assert!(
+        (p.alpha - 1.57991).abs() < 5e-5 && (p.pixel_size - 2.39519).abs() < 1e-4,
+        "{p:?}"
+    );
     let p = by_id(&found, 0).pose;
     assert!(
         (p.x - 325.317).abs() < 0.5 && (p.y - 131.723).abs() < 0.5,

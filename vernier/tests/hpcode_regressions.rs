@@ -3,8 +3,8 @@
 //! The wide generalisation yardstick is the stress suite (`vernier-stress`); these pin the
 //! failure types that were reported.
 
-use image::codecs::jpeg::JpegEncoder;
-use image::ExtendedColorType;
+mod common;
+
 use nalgebra::Vector2;
 use std::f64::consts::PI;
 use vernier::detector::{DetectorSettings, MarkerKind};
@@ -73,21 +73,6 @@ fn render(
     let image = render_scene(&items, &options).unwrap();
     let origins = poses.iter().map(|p| center + p.origin_in_image()).collect();
     (image, origins)
-}
-
-/// `image` as an 8-bit JPEG of `quality`, read back.
-fn jpeg(image: &GreyImage, quality: u8) -> GreyImage {
-    let bytes: Vec<u8> = image.quantized(8).iter().map(|&v| v as u8).collect();
-    let mut encoded = Vec::new();
-    JpegEncoder::new_with_quality(&mut encoded, quality)
-        .encode(
-            &bytes,
-            image.width() as u32,
-            image.height() as u32,
-            ExtendedColorType::L8,
-        )
-        .unwrap();
-    GreyImage::from_dynamic(&image::load_from_memory(&encoded).unwrap()).unwrap()
 }
 
 /// Multiplies by `f(col, row)` and adds Gaussian-like noise (a fixed pseudo-random sequence).
@@ -166,7 +151,7 @@ fn six_tilted_printed_markers_on_grid_paper_under_a_shadow() {
         |c, r| 1.0 - 0.5 * (c / 1280.0) * (r / 1080.0),
         0.01,
     );
-    let image = jpeg(&image, 85);
+    let image = common::jpeg(&image, 85);
     let found = detector(PERIOD, 37).detect(&image).unwrap();
     // Tilted markers are measured by the flat model of their central window; their centres
     // are within a fraction of a pixel of the truth.
@@ -198,7 +183,9 @@ fn dark_marker_with_text_beside_it() {
             *v = 0.08;
         }
     }
-    let found = detector(PERIOD, 37).detect(&jpeg(&image, 90)).unwrap();
+    let found = detector(PERIOD, 37)
+        .detect(&common::jpeg(&image, 90))
+        .unwrap();
     assert_found(&found, &markers, &origins, 0.5);
 }
 
@@ -246,7 +233,7 @@ fn every_quarter_turn_of_a_jpeg_marker_is_found() {
         tilt: (0.0, 0.0),
     }];
     let (image, _) = render((512, 512), 37, &markers, false);
-    let mut view = jpeg(&image, 90);
+    let mut view = common::jpeg(&image, 90);
     let mut detector = detector(PERIOD, 37);
     for quarter in 0..4 {
         let found = detector.detect(&view).unwrap();
@@ -259,6 +246,6 @@ fn every_quarter_turn_of_a_jpeg_marker_is_found() {
             "quarter {quarter}: {}",
             found[0].pose.alpha
         );
-        view = jpeg(&view.rotated_90_clockwise(), 90);
+        view = common::jpeg(&view.rotated_90_clockwise(), 90);
     }
 }

@@ -5,8 +5,6 @@
 
 mod common;
 
-use image::codecs::jpeg::JpegEncoder;
-use image::ExtendedColorType;
 use vernier::detector::{DetectorSettings, MarkerKind};
 use vernier::{Detector, GreyImage};
 
@@ -109,22 +107,6 @@ fn views(image: &GreyImage) -> Vec<(&'static str, GreyImage)> {
     ]
 }
 
-/// `image` written as an 8-bit JPEG of quality 90 and read back.
-fn jpeg90(image: &GreyImage) -> GreyImage {
-    let bytes: Vec<u8> = image.quantized(8).iter().map(|&v| v as u8).collect();
-    let mut encoded = Vec::new();
-    JpegEncoder::new_with_quality(&mut encoded, 90)
-        .encode(
-            &bytes,
-            image.width() as u32,
-            image.height() as u32,
-            ExtendedColorType::L8,
-        )
-        .expect("JPEG encoding");
-    let decoded = image::load_from_memory(&encoded).expect("JPEG decoding");
-    GreyImage::from_dynamic(&decoded).expect("grey image")
-}
-
 #[test]
 fn every_view_of_every_hp_code_image_gives_its_markers() {
     let dir = common::data_dir().join("hpcode");
@@ -140,7 +122,7 @@ fn every_view_of_every_hp_code_image_gives_its_markers() {
         let mut detector = Detector::new(settings.to_config().unwrap()).unwrap();
         let image = GreyImage::open(dir.join(case.file)).unwrap();
         for (name, view) in views(&image) {
-            for (encoding, view) in [("png", view.clone()), ("jpeg90", jpeg90(&view))] {
+            for (encoding, view) in [("png", view.clone()), ("jpeg90", common::jpeg(&view, 90))] {
                 views_checked += 1;
                 let found = detector.detect(&view).unwrap();
                 let mut ids: Vec<u64> = found.iter().map(|m| m.id).collect();

@@ -441,6 +441,10 @@ fn rotated_and_flipped_real_images_give_consistent_poses() {
                 let e_px = (d.origin_px - expected).norm();
                 let e_rad = wrap_angle(d.pose.alpha - t.angle(b.pose.alpha)).abs();
                 let e_scale = (d.pose.pixel_size / b.pose.pixel_size - 1.0).abs();
+                println!(
+                    "{name} {t:?} id {}: {e_px:.2e} px {e_rad:.2e} rad win {:?} {}",
+                    b.id, d.window_center, d.window_size
+                );
                 worst_px = worst_px.max(e_px);
                 worst_rad = worst_rad.max(e_rad);
                 worst_scale = worst_scale.max(e_scale);
@@ -473,7 +477,7 @@ fn dark_dots_under_uneven_illumination_blur_and_noise() {
     let period = 10.0;
     let bitmaps = load_bitmaps(&STAMPS, period);
     let mut params = StampParams::new(period, bitmaps.clone());
-    params.polarity = Polarity::DarkDots;
+    params.polarity = Some(Polarity::DarkDots);
     let mut detector = StampDetector::new(params).unwrap();
     let mut rng = SmallRng::seed_from_u64(99);
     let mut worst = 0.0f64;

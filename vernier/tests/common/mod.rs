@@ -3,7 +3,7 @@
 
 use std::f64::consts::{FRAC_PI_2, FRAC_PI_4};
 use std::path::PathBuf;
-use vernier::Pose;
+use vernier::{GreyImage, Pose};
 
 /// Folder of the real test images: `$VERNIER_DATA_DIR`, else `../shared/data` beside the
 /// workspace. Panics (test failure, not skip) when it is missing.
@@ -47,4 +47,22 @@ pub fn lattice_error(
         da -= FRAC_PI_2;
     }
     (eu.hypot(ev), da.abs())
+}
+
+/// `image` written as an 8-bit JPEG of `quality` (1–100) and read back, as a camera or a
+/// user's re-encoding would leave it.
+pub fn jpeg(image: &GreyImage, quality: u8) -> GreyImage {
+    use image::codecs::jpeg::JpegEncoder;
+    let bytes: Vec<u8> = image.quantized(8).iter().map(|&v| v as u8).collect();
+    let mut encoded = Vec::new();
+    JpegEncoder::new_with_quality(&mut encoded, quality)
+        .encode(
+            &bytes,
+            image.width() as u32,
+            image.height() as u32,
+            image::ExtendedColorType::L8,
+        )
+        .expect("JPEG encoding");
+    let decoded = image::load_from_memory(&encoded).expect("JPEG decoding");
+    GreyImage::from_dynamic(&decoded).expect("grey image")
 }
