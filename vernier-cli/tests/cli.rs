@@ -84,7 +84,7 @@ fn render_then_detect_round_trip_json_and_csv() {
         .next()
         .unwrap()
         .starts_with("frame,stamp,source,id,x,y,"));
-    assert_eq!(lines.next().unwrap().split(',').count(), 17);
+    assert_eq!(lines.next().unwrap().split(',').count(), 18);
     std::fs::remove_dir_all(&dir).ok();
 }
 
