@@ -230,18 +230,33 @@ mod tests {
             let c = size as f64 / 2.0;
             let image = finder_image(size, size, c, c, m);
             let mut scanner = FinderScanner::default();
+            // The gap may also pass for a dark look-alike 1.5 times larger (kept for the grid to
+            // reject); the bright finder is found once, where it is.
             let found = scanner.find(&image, None);
-            assert_eq!(found.len(), 1, "module {m}: {found:?}");
-            let f = found[0];
-            assert_eq!(f.polarity, Polarity::BrightDots);
+            let bright: Vec<&Finder> = found
+                .iter()
+                .filter(|f| f.polarity == Polarity::BrightDots)
+                .collect();
+            assert_eq!(bright.len(), 1, "module {m}: {found:?}");
+            assert!(
+                found
+                    .iter()
+                    .all(|f| f.polarity == Polarity::BrightDots
+                        || (f.module_px / m - 1.5).abs() < 0.2)
+            );
+            let f = *bright[0];
             assert!(
                 (f.center - Vector2::new(c - 0.5, c - 0.5)).norm() < 0.6,
                 "{f:?}"
             );
             assert!((f.module_px / m - 1.0).abs() < 0.1, "{f:?}");
             let dark = scanner.find(&image.inverted(), None);
+            let dark: Vec<&Finder> = dark
+                .iter()
+                .filter(|f| f.polarity == Polarity::DarkDots)
+                .collect();
             assert_eq!(dark.len(), 1);
-            assert_eq!(dark[0].polarity, Polarity::DarkDots);
+            assert!((dark[0].module_px / m - 1.0).abs() < 0.1);
         }
     }
 }
