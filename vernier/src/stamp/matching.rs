@@ -55,9 +55,10 @@ impl Orientation {
         [[c, -s * m], [s, c * m]]
     }
 
-    /// `R⁻¹·v` (R is orthogonal: the inverse is the transpose).
-    fn inverse_apply(&self, v: [i64; 2]) -> [i64; 2] {
-        let m = self.matrix();
+    /// `R⁻¹·v`, from bitmap cell axes to thumbnail cell axes (R is orthogonal: the inverse
+    /// is the transpose); exact for integer cells.
+    pub(crate) fn inverse_apply(&self, v: [f64; 2]) -> [f64; 2] {
+        let m = self.matrix().map(|row| row.map(|x| x as f64));
         [
             m[0][0] * v[0] + m[1][0] * v[1],
             m[0][1] * v[0] + m[1][1] * v[1],
@@ -115,7 +116,9 @@ pub(crate) struct Match {
     /// the winner and a rival predict different values, `(agreeing − disagreeing)/compared`
     /// cells, the smallest over the rivals (the best hypothesis at another placement, and
     /// every other bitmap at the winner's placement). 1 without rivals; 0 when a rival predicts
-    /// the same cells.
+    /// the same cells (an ambiguous reading), except a mirrored view of the winner's own
+    /// bitmap that a mirror symmetry of it makes identical: that is the same marker, and the
+    /// proper reading stands.
     pub vote: f64,
 }
 
@@ -176,9 +179,8 @@ pub(crate) fn best_match(
     // Padded index of thumbnail cell (i1, i2).
     let index = |i: [i64; 2]| (i[1] - thumb.lo[1] + pad) * pw + (i[0] - thumb.lo[0] + pad);
     let norm = (n as f64 * var).sqrt();
-    // Best hypothesis, and best one at another placement (orientation, origin).
-    let mut best: Option<(Hypothesis, f64)> = None;
-    let mut runner_up: Option<(Hypothesis, f64)> = None;
+    // Every hypothesis tried, with its correlation.
+    let mut scored: Vec<(Hypothesis, f64)> = Vec::new();
     let even_up = |v: i64| v + v.rem_euclid(2);
     let mut offsets: Vec<i64> = Vec::new();
     for (bitmap, template) in templates.iter().enumerate() {
@@ -190,8 +192,8 @@ pub(crate) fn best_match(
             // Template cells in thumbnail axes, as padded-index offsets from the origin cell.
             offsets.clear();
             offsets.extend(template.cells.iter().map(|&j| {
-                let i = orientation.inverse_apply(j);
-                i[1] * pw + i[0]
+                let i = orientation.inverse_apply([j[0] as f64, j[1] as f64]);
+                i[1] as i64 * pw + i[0] as i64
             }));
             let reach = template.half[0].max(template.half[1]);
             let mut o2 = even_up(range.origin[1][0]);
@@ -228,50 +230,42 @@ pub(crate) fn best_match(
                         orientation,
                         origin_cell: origin,
                     };
-                    // A mirrored reading must beat a proper one clearly: with a bitmap that is
-                    // its own mirror image both predict the same cells and tie up to rounding.
-                    let beats = |b: &(Hypothesis, f64)| {
-                        let margin = if orientation.mirrored && !b.0.orientation.mirrored {
-                            1e-6
-                        } else {
-                            0.0
-                        };
-                        r > b.1 + margin
-                    };
-                    let rival = range.mirrored_allowed || !orientation.mirrored;
-                    match best {
-                        None => best = Some((h, r)),
-                        Some((b, _)) if b.orientation == orientation && b.origin_cell == origin => {
-                            if best.as_ref().is_some_and(beats) {
-                                best = Some((h, r));
-                            }
-                        }
-                        Some(b) if beats(&b) => {
-                            if range.mirrored_allowed || !b.0.orientation.mirrored {
-                                runner_up = Some(b);
-                            }
-                            best = Some((h, r));
-                        }
-                        Some(_) => {
-                            if rival && runner_up.is_none_or(|(_, rr)| r > rr) {
-                                runner_up = Some((h, r));
-                            }
-                        }
-                    }
+                    scored.push((h, r));
                 }
                 o2 += 2;
             }
         }
     }
-    let (winner, correlation) = best?;
+    // A mirrored reading must beat a proper one clearly: with a bitmap that is its own mirror
+    // image both predict the same cells and tie up to rounding.
+    let rank = |(h, r): &(Hypothesis, f64)| {
+        r - if h.orientation.mirrored {
+            MIRROR_MARGIN
+        } else {
+            0.0
+        }
+    };
+    scored.sort_by(|a, b| rank(b).total_cmp(&rank(a)));
+    let &(winner, correlation) = scored.first()?;
     // Rivals: the best other placement, and the other bitmaps at the winner's placement.
-    let mut rivals: Vec<Hypothesis> = runner_up.map(|(h, _)| h).into_iter().collect();
+    let runner_up = scored.iter().skip(1).map(|&(h, _)| h).find(|h| {
+        let placed_elsewhere =
+            h.orientation != winner.orientation || h.origin_cell != winner.origin_cell;
+        let possible = range.mirrored_allowed || !h.orientation.mirrored;
+        let self_mirror = h.bitmap == winner.bitmap
+            && h.orientation.mirrored
+            && !winner.orientation.mirrored
+            && distinguishing_cells(thumb, templates, &winner, h) == 0;
+        placed_elsewhere && possible && !self_mirror
+    });
+    let mut rivals: Vec<Hypothesis> = runner_up.into_iter().collect();
     rivals.extend(
         (0..templates.len())
             .filter(|&k| k != winner.bitmap)
             .map(|bitmap| Hypothesis { bitmap, ..winner }),
     );
     let vote = cell_vote(thumb, templates, &winner, &rivals);
+    log::trace!("match {winner:?} r {correlation:.3} vote {vote:.3}; rivals {rivals:?}");
     Some(Match {
         bitmap: winner.bitmap,
         orientation: winner.orientation,
@@ -279,6 +273,31 @@ pub(crate) fn best_match(
         correlation,
         vote,
     })
+}
+
+/// Correlation margin a mirrored hypothesis needs over a proper one.
+const MIRROR_MARGIN: f64 = 1e-6;
+
+/// Seen thumbnail cells `(value, cell)`.
+fn seen_cells(thumb: &Thumbnail) -> impl Iterator<Item = (f32, [i64; 2])> + '_ {
+    (0..thumb.len[1]).flat_map(move |r| {
+        (0..thumb.len[0]).filter_map(move |c| {
+            let v = thumb.values[r * thumb.len[0] + c]?;
+            Some((v, [c as i64 + thumb.lo[0], r as i64 + thumb.lo[1]]))
+        })
+    })
+}
+
+/// Seen thumbnail cells where hypotheses `a` and `b` predict different values.
+fn distinguishing_cells(
+    thumb: &Thumbnail,
+    templates: &[Template],
+    a: &Hypothesis,
+    b: &Hypothesis,
+) -> usize {
+    seen_cells(thumb)
+        .filter(|&(_, i)| predicts_set(templates, a, i) != predicts_set(templates, b, i))
+        .count()
 }
 
 /// Whether hypothesis `h` predicts a set cell at thumbnail cell `i`.
@@ -299,14 +318,7 @@ fn cell_vote(
     winner: &Hypothesis,
     rivals: &[Hypothesis],
 ) -> f64 {
-    let cells: Vec<(f32, [i64; 2])> = (0..thumb.len[1])
-        .flat_map(|r| {
-            (0..thumb.len[0]).filter_map(move |c| {
-                let v = thumb.values[r * thumb.len[0] + c]?;
-                Some((v, [c as i64 + thumb.lo[0], r as i64 + thumb.lo[1]]))
-            })
-        })
-        .collect();
+    let cells: Vec<(f32, [i64; 2])> = seen_cells(thumb).collect();
     // Grey level halfway between the winner's set and unset cells.
     let (mut s1, mut n1, mut s0, mut n0) = (0.0f64, 0usize, 0.0f64, 0usize);
     for &(v, i) in &cells {
@@ -356,8 +368,9 @@ mod tests {
             let m = o.matrix();
             let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
             assert_eq!(det, if o.mirrored { -1 } else { 1 });
-            let back = o.inverse_apply([m[0][0] * 2 + m[0][1] * 5, m[1][0] * 2 + m[1][1] * 5]);
-            assert_eq!(back, [2, 5]);
+            let j = [m[0][0] * 2 + m[0][1] * 5, m[1][0] * 2 + m[1][1] * 5];
+            let back = o.inverse_apply([j[0] as f64, j[1] as f64]);
+            assert_eq!(back, [2.0, 5.0]);
             assert!(!seen.contains(&m));
             seen.push(m);
         }

@@ -3,12 +3,17 @@
 //!
 //! Two ways to find them, chosen from the bitmaps ([`StampSearch::Auto`]):
 //! * **framed** (stamps: bitmaps with a solid border ring): every quadrilateral outline of a
-//!   bright region is a candidate ([`quads`]); around its centre a square window, apodised by
-//!   the flat-top radial window of METHOD.md §5.3.2, goes through the phase engine; the frame's
-//!   size must agree with the measured period; the bitmap thumbnail read along the phase planes
-//!   (`thumbnail`) is matched against every bitmap in its 8 dihedral orientations and a few
-//!   period shifts (`matching`); the pose follows. Any number of stamps per image, several
-//!   with the same bitmap included (the original keeps one of them).
+//!   region brighter or darker than its surroundings is a candidate ([`quads`]), in the
+//!   polarity of that region; around its centre a square window, its weighted mean removed
+//!   (the window's own spectrum would otherwise swamp a faint grid) and apodised by the
+//!   flat-top radial window of METHOD.md §5.3.2, goes through the phase engine; the frame's
+//!   size must agree with the measured period; the bitmap thumbnail read along the phase
+//!   planes (`thumbnail`) is matched against every bitmap in its 8 dihedral orientations and a
+//!   few period shifts (`matching`); the reading must be confident
+//!   ([`StampParams::min_decode_confidence`]) and the frame it predicts must lie where the
+//!   frame was found ([`StampParams::max_frame_offset`]); the pose follows. Any number of
+//!   stamps per image, several with the same bitmap included (the original keeps one of
+//!   them).
 //! * **full image** (other bitmaps, e.g. an HP code layout seen as a bitmap): the phase engine on
 //!   the whole image, then the same thumbnail and matching over every position of the bitmap,
 //!   then a second, apodised measurement in a window on the bitmap found (the whole-image fit
@@ -16,17 +21,21 @@
 //!
 //! Poses (METHOD.md §6): the pattern origin is the bitmap's central dot; `alpha` is the
 //! direction of the bitmap's x axis (increasing column) in the image, averaged with that of its
-//! y axis turned back by 90°, and the pixel size the mean of the two grid frequencies. The
-//! central dot's image position is where the two phase planes take the values the match assigns
-//! to it, which is exact for any affine view.
+//! y axis turned back by 90° (forward for a mirrored view), and the pixel size the mean of the
+//! two grid frequencies. The central dot's image position is where the two phase planes take
+//! the values the match assigns to it, which is exact for any affine view. A mirrored marker (a
+//! flipped image or optical path) gets the proper rigid pose of the pattern seen from behind,
+//! as HP codes do: `gamma = π` (`cTp = Rz(α)·Rx(π)·Trans(x, y, 0)`, so its y axis appears at
+//! `alpha − π/2`).
 //!
 //! Differences from the original, on purpose: no silent loss of same-ID stamps; the thumbnail
 //! covers the whole bitmap (frame included) instead of its interior, so the period shift is
 //! pinned by the frame; the period-shift sign slip of METHOD.md §9.12 cannot occur (the match
-//! states where the origin is in the thumbnail); mirrored markers (a flipped image) are
-//! recognised, and reported only when [`StampParams::allow_mirrored`] is set, so they never
-//! come out with a wrong pose; the window is sized from the frame (largest `2^a·3^b` side
-//! inside the dot field) rather than fixed.
+//! states where the origin is in the thumbnail); mirrored markers are recognised and reported
+//! with their proper pose (or dropped with [`StampParams::allow_mirrored`] off); the window is
+//! sized from the frame (largest `2^a·3^b` side inside the dot field) rather than fixed; a
+//! reading that is a near tie or a pose that disagrees with the frame is dropped, never
+//! reported.
 
 mod matching;
 pub mod quads;
@@ -37,12 +46,13 @@ pub use quads::{Quad, QuadParams};
 use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
 use crate::layout::BitmapLayout;
-use crate::phase::{PhaseAnalysis, PhaseEngine, PhaseParams, PhasePlane, MIN_IMAGE_SIDE};
+use crate::phase::{
+    wrap_angle, PhaseAnalysis, PhaseEngine, PhaseParams, PhasePlane, MIN_IMAGE_SIDE,
+};
 use crate::pose::Pose;
-use crate::snapshot::Snapshot;
 use matching::{best_match, Match, SearchRange, Template};
 use nalgebra::Vector2;
-use quads::QuadFinder;
+use quads::{Candidate, QuadFinder};
 use std::f64::consts::{PI, TAU};
 
 /// How markers are searched for.
@@ -83,15 +93,28 @@ pub struct StampParams {
     pub apodization_exponent: f64,
     /// Smallest accepted correlation between thumbnail and bitmap, `[−1, 1]`. Default 0.5.
     pub min_correlation: f64,
+    /// Smallest accepted decode confidence ([`StampDetection::decode_confidence`], `[0, 1]`).
+    /// Default 0.5: on the cells that tell the reading from its closest rival (another
+    /// bitmap, orientation or period shift), at least three quarters must read as it
+    /// predicts. A wrong reading is a near tie (≈ 0); a clean stamp scores ≈ 1, and dust or a
+    /// hair over a quarter of its distinguishing cells still leaves 0.5.
+    pub min_decode_confidence: f64,
     /// How far (in periods, along each axis) the window centre may be from the marker's
     /// central dot for the match to find it. Default 2 (the frame centre is much closer).
     pub max_center_offset: usize,
     /// Largest relative difference between a frame's size and the bitmap size times the
     /// measured period. Default 0.15.
     pub size_tolerance: f64,
-    /// Report mirrored markers (seen through a flipped optical path). Their pose gives the
-    /// bitmap's x axis direction and central dot; their y axis points the other way
-    /// (`alpha − π/2`). Default false: mirrored markers are dropped.
+    /// Largest distance between the centre of the frame found and that of the frame predicted
+    /// by the fine pose (the bitmap's outline placed by the phase planes and the match), in
+    /// grid periods. Default 0.5: the frame is what pins the period shift, so a pose one or
+    /// more periods off (a grid matched at the wrong shift, a false marker beside a real one)
+    /// is dropped, while the frame's edges are located to a small fraction of a period. (The
+    /// frame's size is checked by [`StampParams::size_tolerance`].)
+    pub max_frame_offset: f64,
+    /// Report mirrored markers (a flipped image or optical path), with their proper rigid pose
+    /// (`gamma = π`, see the module docs). Default true; false drops them (and mirrored
+    /// readings are then no rivals of proper ones in the decode confidence).
     pub allow_mirrored: bool,
     /// Phase-engine settings.
     pub phase: PhaseParams,
@@ -109,9 +132,11 @@ impl StampParams {
             quads: QuadParams::default(),
             apodization_exponent: 4.0,
             min_correlation: 0.5,
+            min_decode_confidence: 0.5,
             max_center_offset: 2,
             size_tolerance: 0.15,
-            allow_mirrored: false,
+            max_frame_offset: 0.5,
+            allow_mirrored: true,
             phase: PhaseParams::default(),
         }
     }
@@ -162,17 +187,23 @@ impl StampParams {
                 format!("must be in (0, 1), got {}", self.size_tolerance),
             ));
         }
+        if !(0.0..=1.0).contains(&self.min_decode_confidence) {
+            return Err(Error::parameter(
+                "min_decode_confidence",
+                format!("must be in [0, 1], got {}", self.min_decode_confidence),
+            ));
+        }
+        if !(self.max_frame_offset.is_finite() && self.max_frame_offset > 0.0) {
+            return Err(Error::parameter(
+                "max_frame_offset",
+                format!("must be > 0 periods, got {}", self.max_frame_offset),
+            ));
+        }
         let q = &self.quads;
         if q.threshold_window < 2 {
             return Err(Error::parameter(
                 "threshold_window",
                 format!("must be ≥ 2 pixels, got {}", q.threshold_window),
-            ));
-        }
-        if !(q.threshold_offset.is_finite() && q.threshold_offset >= 0.0) {
-            return Err(Error::parameter(
-                "threshold_offset",
-                format!("must be ≥ 0, got {}", q.threshold_offset),
             ));
         }
         if !(q.min_side.is_finite() && q.min_side > 0.0) {
@@ -191,6 +222,12 @@ impl StampParams {
             return Err(Error::parameter(
                 "outline_tolerance",
                 format!("must be ≥ 0, got {}", q.outline_tolerance),
+            ));
+        }
+        if q.levels > 5 {
+            return Err(Error::parameter(
+                "levels",
+                format!("must be in 0..=5, got {}", q.levels),
             ));
         }
         self.phase.validate()?;
@@ -254,8 +291,12 @@ pub struct StampDetector {
     templates: Vec<Template>,
     /// Per bitmap: its `(cols, rows)` and dot-field side as a fraction of its side.
     shapes: Vec<([usize; 2], f64)>,
+    /// Frame thickness over side, per bitmap.
+    frame_fractions: Vec<f64>,
     finder: QuadFinder,
     windows: Vec<(usize, Vec<f32>)>,
+    /// Windows measured in the current frame: centre, side and bright-dot analysis.
+    measured: Vec<((i64, i64), usize, PhaseAnalysis)>,
 }
 
 /// Apodisation windows kept (one per window size in use).
@@ -266,15 +307,22 @@ impl StampDetector {
     pub fn new(params: StampParams) -> Result<Self> {
         let mode = params.validate()?;
         let templates = params.bitmaps.iter().map(Template::new).collect();
+        let side = |b: &BitmapLayout| b.cell_cols().min(b.cell_rows()) as f64;
         let shapes = params
             .bitmaps
             .iter()
             .map(|b| {
-                let (cols, rows) = (b.cell_cols(), b.cell_rows());
-                let side = cols.min(rows) as f64;
-                let interior = side - 2.0 * (frame_thickness(b) as f64 + 1.0);
-                ([cols, rows], (interior / side).max(0.0))
+                let interior = side(b) - 2.0 * (frame_thickness(b) as f64 + 1.0);
+                (
+                    [b.cell_cols(), b.cell_rows()],
+                    (interior / side(b)).max(0.0),
+                )
             })
+            .collect();
+        let frame_fractions = params
+            .bitmaps
+            .iter()
+            .map(|b| frame_thickness(b) as f64 / side(b))
             .collect();
         Ok(StampDetector {
             params,
@@ -282,8 +330,10 @@ impl StampDetector {
             engine: PhaseEngine::new(),
             templates,
             shapes,
+            frame_fractions,
             finder: QuadFinder::default(),
             windows: Vec::new(),
+            measured: Vec::new(),
         })
     }
 
@@ -303,6 +353,8 @@ impl StampDetector {
     /// Full-image search: one marker, or [`Error::PatternNotFound`] when the grid or the bitmap
     /// is not recognised.
     pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<StampDetection>> {
+        // Phase analyses are shared within one image only.
+        self.measured.clear();
         match self.mode {
             StampSearch::FullImage => {
                 let image = image.as_bright_dots(self.params.polarity.unwrap_or_default());
@@ -310,13 +362,45 @@ impl StampDetector {
             }
             _ => {
                 let mut found: Vec<StampDetection> = Vec::new();
-                for polarity in self.polarities() {
-                    let image = image.as_bright_dots(polarity);
-                    self.detect_framed(&image, polarity, &mut found)?;
+                for candidate in self.candidates(image) {
+                    // Outermost only: a candidate inside an accepted frame is part of it.
+                    let c = candidate.quad.center();
+                    if found
+                        .iter()
+                        .filter_map(|d| d.frame.as_ref())
+                        .any(|f| f.contains(c))
+                    {
+                        continue;
+                    }
+                    if let Some(d) = self.measure_framed(image, candidate)? {
+                        found.push(d);
+                    }
                 }
                 Ok(found)
             }
         }
+    }
+
+    /// Frame candidates of the polarities searched, refined, in the order to try them.
+    fn candidates(&mut self, image: &GreyImage) -> Vec<Candidate> {
+        let shapes: Vec<[usize; 2]> = self.shapes.iter().map(|s| s.0).collect();
+        let found = self.finder.find(
+            image,
+            &self.params.quads,
+            self.params.polarity,
+            &self.frame_fractions,
+            &|q| plausible_outline(q, &shapes),
+        );
+        log::debug!("stamp: {} frame candidates", found.len());
+        for c in &found {
+            log::trace!(
+                "candidate {:?} centre {:.1?} sides {:.1?}",
+                c.polarity,
+                c.quad.center(),
+                c.quad.sides()
+            );
+        }
+        found
     }
 
     /// The polarities searched: the setting's, or both.
@@ -327,42 +411,11 @@ impl StampDetector {
         }
     }
 
-    /// Framed markers of one polarity (`image` already made bright-dot), appended to `found`
-    /// unless inside a frame already accepted.
-    fn detect_framed(
-        &mut self,
-        image: &GreyImage,
-        polarity: Polarity,
-        found: &mut Vec<StampDetection>,
-    ) -> Result<()> {
-        let quads = self.finder.find(image, &self.params.quads);
-        for quad in quads {
-            // Outermost only: a candidate inside an accepted frame is part of it.
-            let c = quad.center();
-            if found
-                .iter()
-                .filter_map(|d| d.frame.as_ref())
-                .any(|f| f.contains(c))
-            {
-                continue;
-            }
-            if let Some(mut d) = self.measure_framed(image, quad)? {
-                d.polarity = polarity;
-                found.push(d);
-            }
-        }
-        Ok(())
-    }
-
-    /// Quadrilateral outlines (frame candidates) of `image`, largest first, before any check
-    /// against the bitmaps (for display and diagnostics).
+    /// Quadrilateral outlines (frame candidates, refined) of `image`, in the order they are
+    /// tried (likely frames first, then largest first), before any check against the bitmaps
+    /// (for display and diagnostics).
     pub fn find_frames(&mut self, image: &GreyImage) -> Vec<Quad> {
-        let mut quads = Vec::new();
-        for polarity in self.polarities() {
-            let image = image.as_bright_dots(polarity);
-            quads.extend(self.finder.find(&image, &self.params.quads));
-        }
-        quads
+        self.candidates(image).into_iter().map(|c| c.quad).collect()
     }
 
     /// Measures a marker whose central dot is near the image pixel `center` (within
@@ -388,24 +441,31 @@ impl StampDetector {
         if !(-reach..w + reach).contains(&center.0) || !(-reach..h + reach).contains(&center.1) {
             return Ok(None);
         }
+        self.measured.clear();
         for polarity in self.polarities() {
-            let image = image.as_bright_dots(polarity);
-            if let Some(mut d) = self.measure_window(&image, center, size, None)? {
-                d.polarity = polarity;
+            if let Some(d) = self.measure_window(image, center, size, None, polarity)? {
                 return Ok(Some(d));
             }
         }
         Ok(None)
     }
 
-    /// A framed candidate: window at the frame centre, sized to the dot field.
-    fn measure_framed(&mut self, image: &GreyImage, quad: Quad) -> Result<Option<StampDetection>> {
+    /// A framed candidate: window at the frame centre, sized to the dot field, measured in the
+    /// candidate's polarity.
+    fn measure_framed(
+        &mut self,
+        image: &GreyImage,
+        candidate: Candidate,
+    ) -> Result<Option<StampDetection>> {
+        let quad = candidate.quad;
         let c = quad.center();
         let center = (c.x.round() as i64, c.y.round() as i64);
         let size = match self.params.window_size {
             Some(s) => s,
             None => {
-                let side = quad.sides().iter().copied().fold(f64::INFINITY, f64::min);
+                // The mean side: less sensitive than the shortest to where the outline's
+                // corners fall (the size steps between fast FFT sizes).
+                let side = quad.mean_side();
                 let fraction = self
                     .shapes
                     .iter()
@@ -417,30 +477,148 @@ impl StampDetector {
         if size < MIN_IMAGE_SIDE {
             return Ok(None);
         }
-        self.measure_window(image, center, size, Some(quad))
+        self.measure_window(image, center, size, Some(quad), candidate.polarity)
     }
 
-    /// Phase, frame-size check, match and pose in a `size` window centred on `center`.
+    /// The `size` window of `image` centred on `center` as the phase engine gets it (bright
+    /// dots): its window-weighted mean removed, apodised, 0 outside the image.
+    fn window_image(
+        &mut self,
+        image: &GreyImage,
+        center: (i64, i64),
+        size: usize,
+    ) -> Result<GreyImage> {
+        // The part of the window inside the image: window indices [lo, hi) on each axis, and
+        // the image index of lo.
+        let half = (size / 2) as i64;
+        let span = |c: i64, len: usize| {
+            let first = c - half;
+            let lo = (-first).clamp(0, size as i64) as usize;
+            let hi = ((len as i64 - first).clamp(0, size as i64) as usize).max(lo);
+            (lo, hi, (first + lo as i64).max(0) as usize)
+        };
+        let (c0, c1, src_c) = span(center.0, image.width());
+        let (r0, r1, src_r) = span(center.1, image.height());
+        let mut pixels = vec![0.0f32; size * size];
+        let weights = self.apodization(size);
+        let src = image.pixels();
+        let w = image.width();
+        let (mut sum_w, mut sum_wv) = (0.0f64, 0.0f64);
+        for r in r0..r1 {
+            let from = (src_r + r - r0) * w + src_c;
+            let row = &src[from..from + (c1 - c0)];
+            let wrow = &weights[r * size + c0..r * size + c1];
+            let (mut sw, mut swv) = (0.0f32, 0.0f32);
+            for (&v, &k) in row.iter().zip(wrow) {
+                sw += k;
+                swv += k * v;
+            }
+            sum_w += sw as f64;
+            sum_wv += swv as f64;
+        }
+        let mean = if sum_w > 0.0 {
+            (sum_wv / sum_w) as f32
+        } else {
+            0.0
+        };
+        // Outside the image the window holds the mean (0 once removed): no step at the border.
+        for r in r0..r1 {
+            let from = (src_r + r - r0) * w + src_c;
+            let row = &src[from..from + (c1 - c0)];
+            let wrow = &weights[r * size + c0..r * size + c1];
+            for ((o, &v), &k) in pixels[r * size + c0..r * size + c1]
+                .iter_mut()
+                .zip(row)
+                .zip(wrow)
+            {
+                *o = (v - mean) * k;
+            }
+        }
+        let window = GreyImage::new(size, size, pixels)?;
+        Ok(window)
+    }
+
+    /// The bright-dot phase analysis of the `size` window at `center`: one measured already in
+    /// this frame at nearly the same place (its centre within 2 % of the side: concentric
+    /// candidates, such as a frame and the moat or threshold halo around it), its planes moved
+    /// to `center`, or a new one. `None` when the engine finds no grid.
+    fn analysis_at(
+        &mut self,
+        image: &GreyImage,
+        center: (i64, i64),
+        size: usize,
+        periods: Option<(f64, f64)>,
+    ) -> Result<Option<PhaseAnalysis>> {
+        let near = |c: &(i64, i64)| {
+            let d = ((c.0 - center.0) as f64).hypot((c.1 - center.1) as f64);
+            d <= 0.02 * size as f64
+        };
+        if let Some((c, _, a)) = self.measured.iter().find(|(c, s, _)| *s == size && near(c)) {
+            let (dx, dy) = ((center.0 - c.0) as f64, (center.1 - c.1) as f64);
+            log::debug!("stamp at {center:?}: phase planes of the window at {c:?} reused");
+            let mut moved = a.clone();
+            for p in moved.planes.iter_mut() {
+                p.c += p.a * dx + p.b * dy;
+            }
+            return Ok(Some(moved));
+        }
+        let window = self.window_image(image, center, size)?;
+        let mut params = self.params.phase.clone();
+        if let Some((lo, hi)) = periods {
+            // Lobes only where the frame says the grid is: a hair, JPEG blocks or a clutter
+            // grid in the window cannot stand in for it.
+            let band = (size as f64 / hi, size as f64 / lo);
+            params.min_frequency = params.min_frequency.max(band.0);
+            params.max_frequency = params.max_frequency.min(band.1);
+            if params.max_frequency <= params.min_frequency {
+                return Ok(None);
+            }
+        }
+        let analysis = self.engine.analyze(&window, &params);
+        match analysis {
+            Ok(a) => {
+                self.measured.push((center, size, a.clone()));
+                Ok(Some(a))
+            }
+            Err(Error::PatternNotFound(why)) => {
+                log::debug!("stamp at {center:?}: no grid ({why})");
+                Ok(None)
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Phase, frame-size check, match, frame consistency and pose in a `size` window centred on
+    /// `center`, for markers of `polarity`.
     fn measure_window(
         &mut self,
         image: &GreyImage,
         center: (i64, i64),
         size: usize,
         frame: Option<Quad>,
+        polarity: Polarity,
     ) -> Result<Option<StampDetection>> {
-        let mut snapshot = Snapshot::extract(image, center, size)?;
-        let window = self.apodization(size);
-        for (v, w) in snapshot.image.pixels_mut().iter_mut().zip(window) {
-            *v *= w;
-        }
-        let analysis = match self.engine.analyze(&snapshot.image, &self.params.phase) {
-            Ok(a) => a,
-            Err(Error::PatternNotFound(_)) => return Ok(None),
-            Err(e) => return Err(e),
+        let periods = frame.as_ref().map(|q| self.expected_periods(q));
+        let Some(mut analysis) = self.analysis_at(image, center, size, periods)? else {
+            return Ok(None);
         };
+        if polarity == Polarity::DarkDots {
+            // The analysis of the negated window: every phase moves by π (dark dots at 0).
+            for p in analysis
+                .planes
+                .iter_mut()
+                .chain(&mut analysis.bandpass_planes)
+            {
+                p.c += PI;
+            }
+        }
         let planes = analysis.planes.map(|p| p.with_wrapped_offset());
         if let Some(q) = &frame {
             if !self.shapes.iter().any(|s| self.frame_fits(q, &planes, s.0)) {
+                log::debug!(
+                    "stamp at {center:?}: frame size does not fit the grid period {:.2} px",
+                    analysis.mean_pixel_period()
+                );
                 return Ok(None);
             }
         }
@@ -456,10 +634,24 @@ impl StampDetector {
         let half = reach + shift + 2;
         let origin = Vector2::new(center.0 as f64, center.1 as f64);
         let len = (2 * half + 1) as usize;
-        let Some(thumb) = thumbnail::sample(image, origin, &planes, [-half, -half], [len, len])
-        else {
+        // Perspective: the frame's outline says how the affine view of the planes bends.
+        let warp = frame.as_ref().and_then(|q| q.perspective_warp());
+        let Some(mut thumb) = thumbnail::sample(
+            image,
+            origin,
+            &planes,
+            [-half, -half],
+            [len, len],
+            warp.as_ref(),
+        ) else {
             return Ok(None);
         };
+        if polarity == Polarity::DarkDots {
+            // Dots (set cells) darker: the matching wants them high.
+            for v in thumb.values.iter_mut().flatten() {
+                *v = -*v;
+            }
+        }
         let range = SearchRange {
             origin: [[-shift, shift], [-shift, shift]],
             mirrored_allowed: self.params.allow_mirrored,
@@ -468,17 +660,66 @@ impl StampDetector {
         let Some(found) = best_match(&thumb, &self.templates, &range) else {
             return Ok(None);
         };
-        if found.correlation < self.params.min_correlation
-            || (found.orientation.mirrored && !self.params.allow_mirrored)
-        {
+        if let Some(why) = self.reading_rejected(&found) {
+            log::debug!("stamp at {center:?}: {why}");
             return Ok(None);
         }
         if let Some(q) = &frame {
             if !self.frame_fits(q, &planes, self.shapes[found.bitmap].0) {
+                log::debug!(
+                    "stamp at {center:?}: frame size does not fit bitmap {}",
+                    found.bitmap
+                );
                 return Ok(None);
             }
+            let Some(predicted) = self.predicted_frame(&found, &planes, origin) else {
+                return Ok(None);
+            };
+            // Centres, not corners: perspective bends the corners away from the affine view of
+            // the phase planes (0.6 period on stamp1.png), not the centre.
+            let offset = (q.center() - predicted.center()).norm() / analysis.mean_pixel_period();
+            if offset > self.params.max_frame_offset {
+                log::debug!(
+                    "stamp at {center:?}: the pose puts the frame {offset:.2} periods from the \
+                     one found (max_frame_offset {})",
+                    self.params.max_frame_offset
+                );
+                return Ok(None);
+            }
+            log::debug!(
+                "stamp at {center:?}: bitmap {} (correlation {:.3}, confidence {:.3}, frame \
+                 offset {offset:.2} periods)",
+                found.bitmap,
+                found.correlation,
+                found.vote
+            );
         }
-        Ok(self.detection(found, &planes, origin, image, frame, center, size, analysis))
+        Ok(self
+            .detection(found, &planes, origin, image, frame, center, size, analysis)
+            .map(|d| StampDetection { polarity, ..d }))
+    }
+
+    /// Why a match is not reported (`None`: it is).
+    fn reading_rejected(&self, found: &Match) -> Option<String> {
+        let p = &self.params;
+        if found.correlation < p.min_correlation {
+            Some(format!(
+                "bitmap {} correlation {:.3} < min_correlation {}",
+                found.bitmap, found.correlation, p.min_correlation
+            ))
+        } else if found.orientation.mirrored && !p.allow_mirrored {
+            Some(format!(
+                "bitmap {} seen mirrored (allow_mirrored is off)",
+                found.bitmap
+            ))
+        } else if found.vote < p.min_decode_confidence {
+            Some(format!(
+                "bitmap {} read with confidence {:.3} < min_decode_confidence {}",
+                found.bitmap, found.vote, p.min_decode_confidence
+            ))
+        } else {
+            None
+        }
     }
 
     /// Full-image search: phase on the whole image, match over every bitmap position.
@@ -508,7 +749,7 @@ impl StampDetector {
         }
         let len = [(hi[0] - lo[0] + 1) as usize, (hi[1] - lo[1] + 1) as usize];
         let not_found = |why: &str| Error::PatternNotFound(format!("bitmap marker: {why}"));
-        let thumb = thumbnail::sample(image, origin, &planes, lo, len)
+        let thumb = thumbnail::sample(image, origin, &planes, lo, len, None)
             .ok_or_else(|| not_found("degenerate phase planes"))?;
         let range = SearchRange {
             origin: [[lo[0], hi[0]], [lo[1], hi[1]]],
@@ -517,16 +758,8 @@ impl StampDetector {
         };
         let found = best_match(&thumb, &self.templates, &range)
             .ok_or_else(|| not_found("no bitmap position overlaps the image enough"))?;
-        if found.correlation < self.params.min_correlation {
-            return Err(not_found(&format!(
-                "best correlation {:.2} is below min_correlation {:.2}",
-                found.correlation, self.params.min_correlation
-            )));
-        }
-        if found.orientation.mirrored && !self.params.allow_mirrored {
-            return Err(not_found(
-                "the bitmap is seen mirrored (allow_mirrored is off)",
-            ));
+        if let Some(why) = self.reading_rejected(&found) {
+            return Err(not_found(&why));
         }
         let size = image.width().max(image.height());
         let coarse = self
@@ -557,8 +790,14 @@ impl StampDetector {
             coarse.origin_px.x.round() as i64,
             coarse.origin_px.y.round() as i64,
         );
-        match self.measure_window(image, center, window, None)? {
-            Some(fine) if fine.id == coarse.id && fine.mirrored == coarse.mirrored => Ok(fine),
+        // `image` is already bright-dot.
+        match self.measure_window(image, center, window, None, Polarity::BrightDots)? {
+            Some(fine) if fine.id == coarse.id && fine.mirrored == coarse.mirrored => {
+                Ok(StampDetection {
+                    polarity: coarse.polarity,
+                    ..fine
+                })
+            }
             _ => Ok(coarse),
         }
     }
@@ -573,8 +812,67 @@ impl StampDetector {
             quad.extent_along(dir) * f / PI
         };
         let (e1, e2) = (measure(&planes[0]), measure(&planes[1]));
+        log::trace!(
+            "frame extents {:.4} {:.4} of {dims:?}",
+            e1 / dims[0] as f64,
+            e2 / dims[1] as f64
+        );
         let close = |e: f64, n: usize| (e / n as f64 - 1.0).abs() <= self.params.size_tolerance;
         (close(e1, dims[0]) && close(e2, dims[1])) || (close(e1, dims[1]) && close(e2, dims[0]))
+    }
+
+    /// Range of grid periods (pixels) that a frame outline allows: each side over half its
+    /// number of cells, either way round for every bitmap, widened by 30 % (perspective, and
+    /// the frame check that follows is the strict one).
+    fn expected_periods(&self, quad: &Quad) -> (f64, f64) {
+        let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+        for (dims, _) in &self.shapes {
+            for side in quad.sides() {
+                for n in dims {
+                    let p = 2.0 * side / *n as f64;
+                    lo = lo.min(p);
+                    hi = hi.max(p);
+                }
+            }
+        }
+        (lo / 1.3, hi * 1.3)
+    }
+
+    /// The image point (pixels) of the thumbnail cell position `cell` (half periods along the
+    /// two phases, fractional allowed), the planes being expressed about `plane_origin`.
+    fn cell_to_image(
+        planes: &[PhasePlane; 2],
+        plane_origin: Vector2<f64>,
+        cell: [f64; 2],
+    ) -> Option<Vector2<f64>> {
+        let inv = thumbnail::phase_jacobian(planes)?.try_inverse()?;
+        let target = Vector2::new(PI * cell[0] - planes[0].c, PI * cell[1] - planes[1].c);
+        Some(plane_origin + inv * target)
+    }
+
+    /// The outer outline of the matched bitmap (its frame) where the fine pose puts it.
+    fn predicted_frame(
+        &self,
+        found: &Match,
+        planes: &[PhasePlane; 2],
+        plane_origin: Vector2<f64>,
+    ) -> Option<Quad> {
+        let half = self.templates.get(found.bitmap)?.half;
+        // Outer edges: half a cell beyond the outermost cell centres.
+        let (hx, hy) = (half[0] as f64 + 0.5, half[1] as f64 + 0.5);
+        let mut corners = [Vector2::zeros(); 4];
+        for (k, (sx, sy)) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
+            .into_iter()
+            .enumerate()
+        {
+            let i = found.orientation.inverse_apply([sx * hx, sy * hy]);
+            let cell = [
+                found.origin_cell[0] as f64 + i[0],
+                found.origin_cell[1] as f64 + i[1],
+            ];
+            corners[k] = Self::cell_to_image(planes, plane_origin, cell)?;
+        }
+        Some(Quad { corners })
     }
 
     /// Pose and bookkeeping of a match.
@@ -590,15 +888,9 @@ impl StampDetector {
         window_size: usize,
         analysis: PhaseAnalysis,
     ) -> Option<StampDetection> {
-        let jac = thumbnail::phase_jacobian(planes)?;
-        let inv = jac.try_inverse()?;
         // Central dot: where the phases equal π·(its thumbnail cell).
-        let cell = found.origin_cell;
-        let target = Vector2::new(
-            PI * cell[0] as f64 - planes[0].c,
-            PI * cell[1] as f64 - planes[1].c,
-        );
-        let origin_px = plane_origin + inv * target;
+        let cell = found.origin_cell.map(|c| c as f64);
+        let origin_px = Self::cell_to_image(planes, plane_origin, cell)?;
         // Bitmap phases Φ = π·j0 + R·φ: their gradients from the planes'.
         let r = found.orientation.matrix();
         let g1 = Vector2::new(planes[0].a, planes[0].b);
@@ -611,8 +903,9 @@ impl StampDetector {
         }
         let u = gx / nx;
         let v = gy / ny;
+        let mirrored = found.orientation.mirrored;
         // The y axis turned back onto the x axis: −90° for a proper view, +90° when mirrored.
-        let v_on_x = if found.orientation.mirrored {
+        let v_on_x = if mirrored {
             Vector2::new(-v.y, v.x)
         } else {
             Vector2::new(v.y, -v.x)
@@ -622,13 +915,23 @@ impl StampDetector {
         let pixel_size = self.params.period * (nx + ny) / 2.0 / TAU;
         let (icx, icy) = image.center();
         let from_center = origin_px - Vector2::new(icx as f64, icy as f64);
-        let pose = Pose::from_origin_in_image(from_center, alpha, pixel_size);
+        let planar = Pose::from_origin_in_image(from_center, alpha, pixel_size);
+        let pose = if mirrored {
+            // cTp = Rz(α)·Rx(π)·Trans(x, y, 0): the origin at Rz(α)·(x, −y), so y flips sign.
+            Pose {
+                y: -planar.y,
+                gamma: wrap_angle(PI),
+                ..planar
+            }
+        } else {
+            planar
+        };
         let decode_confidence = found.vote.clamp(0.0, 1.0);
         Some(StampDetection {
             id: found.bitmap,
             pose,
             origin_px,
-            mirrored: found.orientation.mirrored,
+            mirrored,
             correlation: found.correlation,
             decode_confidence,
             frame,
@@ -640,7 +943,7 @@ impl StampDetector {
     }
 
     /// The radial apodisation window of a `size × size` snapshot (cached per size): the same
-    /// weights as [`Snapshot::apodize`] with [`StampParams::apodization_exponent`].
+    /// weights as [`crate::snapshot::Snapshot::apodize`] with [`StampParams::apodization_exponent`].
     fn apodization(&mut self, size: usize) -> &[f32] {
         if let Some(pos) = self.windows.iter().position(|(s, _)| *s == size) {
             let w = self.windows.remove(pos);
@@ -655,6 +958,23 @@ impl StampDetector {
         let last = self.windows.len() - 1;
         &self.windows[last].1
     }
+}
+
+/// Whether a quadrilateral can be the outline of a bitmap of one of the `[cols, rows]` shapes
+/// seen from any angle (before measuring it): opposite sides within a factor 1.6 of each other
+/// (a tilt of up to ~30° under strong perspective), and its two side lengths in the ratio of a
+/// bitmap's sides within that factor too.
+fn plausible_outline(quad: &Quad, shapes: &[[usize; 2]]) -> bool {
+    const FACTOR: f64 = 1.6;
+    let s = quad.sides();
+    let within = |a: f64, b: f64| a <= FACTOR * b && b <= FACTOR * a;
+    let (u, v) = ((s[0] + s[2]) / 2.0, (s[1] + s[3]) / 2.0);
+    within(s[0], s[2])
+        && within(s[1], s[3])
+        && shapes.iter().any(|dims| {
+            let aspect = dims[0] as f64 / dims[1] as f64;
+            within(u, v * aspect) || within(v, u * aspect)
+        })
 }
 
 /// `w(d) = (1 + cos(π·(d/ρ)^e))/2` for `d < ρ = size/2`, else 0; `d` from the centre index
@@ -708,6 +1028,7 @@ fn fast_size_at_most(n: usize) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::snapshot::Snapshot;
 
     #[test]
     fn fast_sizes_at_most() {

@@ -9,7 +9,7 @@
 
 use crate::grey_image::GreyImage;
 use crate::phase::PhasePlane;
-use nalgebra::{Matrix2, Vector2};
+use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
 use std::f64::consts::PI;
 
 /// Grey levels of a rectangular block of half-period cells.
@@ -44,14 +44,24 @@ pub(crate) fn phase_jacobian(planes: &[PhasePlane; 2]) -> Option<Matrix2<f64>> {
 
 /// Samples the cells `lo[k] ≤ i_k < lo[k] + len[k]` of `image`, the planes being expressed in
 /// the frame whose origin is the image point `origin` (pixels `(col, row)`), with their offsets
-/// `c` in `(−π, π]` so that cell `(0, 0)` is the dot nearest to that origin.
+/// `c` in `(−π, π]` so that cell `(0, 0)` is the dot nearest to that origin. `warp` (a
+/// homography of image points, see [`crate::stamp::Quad::perspective_warp`]) moves every
+/// sample from where the planes' affine view puts it to where perspective does.
 pub(crate) fn sample(
     image: &GreyImage,
     origin: Vector2<f64>,
     planes: &[PhasePlane; 2],
     lo: [i64; 2],
     len: [usize; 2],
+    warp: Option<&Matrix3<f64>>,
 ) -> Option<Thumbnail> {
+    let at = |p: Vector2<f64>| match warp {
+        Some(h) => {
+            let q = h * Vector3::new(p.x, p.y, 1.0);
+            (q.z.abs() > 1e-12).then(|| Vector2::new(q.x / q.z, q.y / q.z))
+        }
+        None => Some(p),
+    };
     let inv = phase_jacobian(planes)?.try_inverse()?;
     // Image offset of one cell step along each phase, and of the sample spread (a sixth of a
     // cell each way).
@@ -69,9 +79,9 @@ pub(crate) fn sample(
         let row_start = start + step2 * r as f64;
         for c in 0..len[0] {
             let p = row_start + step1 * c as f64;
-            let mut sum = bilinear(image, p);
+            let mut sum = at(p).and_then(|q| bilinear(image, q));
             for d in &spread {
-                sum = match (sum, bilinear(image, p + d)) {
+                sum = match (sum, at(p + d).and_then(|q| bilinear(image, q))) {
                     (Some(s), Some(v)) => Some(s + v),
                     _ => None,
                 };
@@ -83,7 +93,7 @@ pub(crate) fn sample(
 }
 
 /// Bilinear interpolation at pixel coordinates `p = (col, row)`; `None` outside the image.
-fn bilinear(image: &GreyImage, p: Vector2<f64>) -> Option<f32> {
+pub(crate) fn bilinear(image: &GreyImage, p: Vector2<f64>) -> Option<f32> {
     let (w, h) = (image.width(), image.height());
     if !(p.x >= 0.0 && p.y >= 0.0 && p.x <= (w - 1) as f64 && p.y <= (h - 1) as f64) {
         return None;
@@ -123,7 +133,15 @@ mod tests {
                 c: 0.0,
             },
         ];
-        let t = sample(&image, Vector2::new(33.5, 24.0), &planes, [-3, -2], [7, 5]).unwrap();
+        let t = sample(
+            &image,
+            Vector2::new(33.5, 24.0),
+            &planes,
+            [-3, -2],
+            [7, 5],
+            None,
+        )
+        .unwrap();
         assert_eq!(t.get(0, 0), Some(1.0));
         assert_eq!(t.get(1, 0), Some(0.0));
         assert_eq!(t.get(-2, 1), Some(1.0));
