@@ -114,11 +114,12 @@ pub(crate) struct Match {
     pub correlation: f64,
     /// Cell vote of the winner against its rivals, `[−1, 1]`: on the thumbnail cells where
     /// the winner and a rival predict different values, `(agreeing − disagreeing)/compared`
-    /// cells, the smallest over the rivals (the best hypothesis at another placement, and
-    /// every other bitmap at the winner's placement). 1 without rivals; 0 when a rival predicts
-    /// the same cells (an ambiguous reading), except a mirrored view of the winner's own
-    /// bitmap that a mirror symmetry of it makes identical: that is the same marker, and the
-    /// proper reading stands.
+    /// cells, each cell counting as much as its neighbourhood reads as the winner predicts
+    /// (an occluded cell is no evidence either way), the smallest over the rivals (the best
+    /// hypothesis at another placement, and every other bitmap at the winner's placement). 1
+    /// without rivals; 0 when a rival predicts the same cells (an ambiguous reading), except a
+    /// mirrored view of the winner's own bitmap that a mirror symmetry of it makes identical:
+    /// that is the same marker, and the proper reading stands.
     pub vote: f64,
 }
 
@@ -335,22 +336,62 @@ fn cell_vote(
     }
     let (m1, m0) = (s1 / n1 as f64, s0 / n0 as f64);
     let mid = (m1 + m0) / 2.0;
+    // Whether the cell at thumbnail index (col, row) reads as the winner predicts (None:
+    // unseen or outside).
+    let (cols, rows) = (thumb.len[0] as i64, thumb.len[1] as i64);
+    let reads_as_winner = |c: i64, r: i64| {
+        if c < 0 || r < 0 || c >= cols || r >= rows {
+            return None;
+        }
+        let v = thumb.values[(r * cols + c) as usize]?;
+        let i = [c + thumb.lo[0], r + thumb.lo[1]];
+        Some(((v as f64 > mid) == (m1 > m0)) == predicts_set(templates, winner, i))
+    };
+    // How far a cell's reading is evidence: as much as its 8 neighbours read as the winner
+    // predicts (all: 1; half or fewer: 0). A dust speck or a hair over a few cells that tell
+    // two bitmaps apart also spoils the cells around them, so it cannot fake a glyph.
+    let weight = |i: [i64; 2]| {
+        let (c, r) = (i[0] - thumb.lo[0], i[1] - thumb.lo[1]);
+        let (mut good, mut seen) = (0usize, 0usize);
+        for (dc, dr) in [
+            (-1, -1),
+            (0, -1),
+            (1, -1),
+            (-1, 0),
+            (1, 0),
+            (-1, 1),
+            (0, 1),
+            (1, 1),
+        ] {
+            if let Some(ok) = reads_as_winner(c + dc, r + dr) {
+                seen += 1;
+                good += usize::from(ok);
+            }
+        }
+        if seen == 0 {
+            return 0.0;
+        }
+        (2.0 * good as f64 / seen as f64 - 1.0).max(0.0)
+    };
     let mut vote = 1.0f64;
     for rival in rivals {
-        let (mut agree, mut compared) = (0usize, 0usize);
+        let (mut net, mut compared) = (0.0f64, 0usize);
         for &(v, i) in &cells {
             let set = predicts_set(templates, winner, i);
             if set != predicts_set(templates, rival, i) {
                 compared += 1;
-                if ((v as f64 > mid) == (m1 > m0)) == set {
-                    agree += 1;
-                }
+                let sign = if ((v as f64 > mid) == (m1 > m0)) == set {
+                    1.0
+                } else {
+                    -1.0
+                };
+                net += sign * weight(i);
             }
         }
         let v = if compared == 0 {
             0.0
         } else {
-            (2.0 * agree as f64 - compared as f64) / compared as f64
+            net / compared as f64
         };
         vote = vote.min(v);
     }

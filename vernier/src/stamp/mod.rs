@@ -95,9 +95,9 @@ pub struct StampParams {
     pub min_correlation: f64,
     /// Smallest accepted decode confidence ([`StampDetection::decode_confidence`], `[0, 1]`).
     /// Default 0.5: on the cells that tell the reading from its closest rival (another
-    /// bitmap, orientation or period shift), at least three quarters must read as it
+    /// bitmap, orientation or period shift), at least three quarters must read clearly as it
     /// predicts. A wrong reading is a near tie (≈ 0); a clean stamp scores ≈ 1, and dust or a
-    /// hair over a quarter of its distinguishing cells still leaves 0.5.
+    /// hair over up to half of its distinguishing cells (no evidence either way) leaves 0.5.
     pub min_decode_confidence: f64,
     /// How far (in periods, along each axis) the window centre may be from the marker's
     /// central dot for the match to find it. Default 2 (the frame centre is much closer).
@@ -268,7 +268,9 @@ pub struct StampDetection {
     /// Confidence of the decoding, `[0, 1]`: on the bitmap cells where the winning hypothesis
     /// and a rival (the best other orientation or period shift, and every other bitmap) predict
     /// different values, the fraction of cells read as the winner predicts minus the fraction
-    /// read as the rival predicts; the smallest over the rivals, clamped at 0.
+    /// read as the rival predicts, each cell weighted by how well its 8 neighbours read as the
+    /// winner predicts (a cell under dust or a hair is no evidence); the smallest over the
+    /// rivals, clamped at 0.
     pub decode_confidence: f64,
     /// The frame outline, for framed markers.
     pub frame: Option<Quad>,
@@ -943,7 +945,8 @@ impl StampDetector {
     }
 
     /// The radial apodisation window of a `size × size` snapshot (cached per size): the same
-    /// weights as [`crate::snapshot::Snapshot::apodize`] with [`StampParams::apodization_exponent`].
+    /// weights as [`crate::snapshot::Snapshot::apodize`] with
+    /// [`StampParams::apodization_exponent`].
     fn apodization(&mut self, size: usize) -> &[f32] {
         if let Some(pos) = self.windows.iter().position(|(s, _)| *s == size) {
             let w = self.windows.remove(pos);
