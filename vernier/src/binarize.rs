@@ -261,8 +261,6 @@ pub struct Region {
     /// The region of the other colour around it; `None` for regions touching the image
     /// border (they enclose nothing measurable and are enclosed by nothing).
     pub parent: Option<usize>,
-    /// Number of regions directly inside it.
-    pub children: u32,
     /// Touches the image border.
     pub open: bool,
 }
@@ -341,7 +339,6 @@ impl Regions {
                     filled_centroid: [0.0; 2],
                     bbox: [u32::MAX, u32::MAX, 0, 0],
                     parent: None,
-                    children: 0,
                     open: false,
                 });
                 sums.push([0.0; 3]);
@@ -396,7 +393,6 @@ impl Regions {
                 t[0] += s[0];
                 t[1] += s[1];
                 t[2] += s[2];
-                self.regions[p].children += 1;
             }
         }
     }

@@ -7,10 +7,9 @@ mod common;
 
 use nalgebra::Vector2;
 use std::f64::consts::PI;
-use vernier::detector::{DetectorSettings, MarkerKind};
 use vernier::layout::{HpCodeLayout, Layout};
 use vernier::render::{render_scene, RenderOptions};
-use vernier::{Detector, GreyImage, MarkerPose, Pose};
+use vernier::{GreyImage, MarkerPose, Pose};
 
 /// Physical period of the rendered markers, µm.
 const PERIOD: f64 = 15.5;
@@ -23,16 +22,6 @@ struct Marker {
     alpha: f64,
     period_px: f64,
     tilt: (f64, f64),
-}
-
-fn detector(period: f64, code_size: usize) -> Detector {
-    let settings = DetectorSettings {
-        pattern_type: MarkerKind::HpCode,
-        period: Some(period),
-        code_size: Some(code_size),
-        ..Default::default()
-    };
-    Detector::new(settings.to_config().unwrap()).unwrap()
 }
 
 /// Renders `markers` (W = `code_size`) as dark ink on a bright background when `dark`.
@@ -152,7 +141,7 @@ fn six_tilted_printed_markers_on_grid_paper_under_a_shadow() {
         0.01,
     );
     let image = common::jpeg(&image, 85);
-    let found = detector(PERIOD, 37).detect(&image).unwrap();
+    let found = common::hp_detector(PERIOD, 37).detect(&image).unwrap();
     // Tilted markers are measured by the flat model of their central window; their centres
     // are within a fraction of a pixel of the truth.
     assert_found(&found, &markers, &origins, 1.0);
@@ -183,7 +172,7 @@ fn dark_marker_with_text_beside_it() {
             *v = 0.08;
         }
     }
-    let found = detector(PERIOD, 37)
+    let found = common::hp_detector(PERIOD, 37)
         .detect(&common::jpeg(&image, 90))
         .unwrap();
     assert_found(&found, &markers, &origins, 0.5);
@@ -210,8 +199,8 @@ fn period_setting_only_sets_the_units_and_polarity_is_found() {
         },
     ];
     let (image, origins) = render((633, 476), 33, &markers, true);
-    let with_20 = detector(20.0, 33).detect(&image).unwrap();
-    let with_15 = detector(15.5, 33).detect(&image).unwrap();
+    let with_20 = common::hp_detector(20.0, 33).detect(&image).unwrap();
+    let with_15 = common::hp_detector(15.5, 33).detect(&image).unwrap();
     assert_found(&with_20, &markers, &origins, 0.05);
     assert_found(&with_15, &markers, &origins, 0.05);
     for (a, b) in with_20.iter().zip(&with_15) {
@@ -234,7 +223,7 @@ fn every_quarter_turn_of_a_jpeg_marker_is_found() {
     }];
     let (image, _) = render((512, 512), 37, &markers, false);
     let mut view = common::jpeg(&image, 90);
-    let mut detector = detector(PERIOD, 37);
+    let mut detector = common::hp_detector(PERIOD, 37);
     for quarter in 0..4 {
         let found = detector.detect(&view).unwrap();
         assert_eq!(found.len(), 1, "quarter turn {quarter}: {found:#?}");

@@ -5,8 +5,7 @@
 
 mod common;
 
-use vernier::detector::{DetectorSettings, MarkerKind};
-use vernier::{Detector, GreyImage};
+use vernier::GreyImage;
 
 /// One real image: file, code size W, the IDs of its markers, and how many of them every view
 /// must find (all, except where a marker is physically damaged: see the notes).
@@ -113,13 +112,7 @@ fn every_view_of_every_hp_code_image_gives_its_markers() {
     let mut failures = Vec::new();
     let mut views_checked = 0;
     for case in CASES {
-        let settings = DetectorSettings {
-            pattern_type: MarkerKind::HpCode,
-            period: Some(15.5),
-            code_size: Some(case.code_size),
-            ..Default::default()
-        };
-        let mut detector = Detector::new(settings.to_config().unwrap()).unwrap();
+        let mut detector = common::hp_detector(15.5, case.code_size);
         let image = GreyImage::open(dir.join(case.file)).unwrap();
         for (name, view) in views(&image) {
             for (encoding, view) in [("png", view.clone()), ("jpeg90", common::jpeg(&view, 90))] {

@@ -3,7 +3,8 @@
 
 use std::f64::consts::{FRAC_PI_2, FRAC_PI_4};
 use std::path::PathBuf;
-use vernier::{GreyImage, Pose};
+use vernier::detector::{DetectorSettings, MarkerKind};
+use vernier::{Detector, GreyImage, Pose};
 
 /// Folder of the real test images: `$VERNIER_DATA_DIR`, else `../shared/data` beside the
 /// workspace. Panics (test failure, not skip) when it is missing.
@@ -65,4 +66,16 @@ pub fn jpeg(image: &GreyImage, quality: u8) -> GreyImage {
         .expect("JPEG encoding");
     let decoded = image::load_from_memory(&encoded).expect("JPEG decoding");
     GreyImage::from_dynamic(&decoded).expect("grey image")
+}
+
+/// The HP code detector a user gets from `--hpcode --period PERIOD --code-size W` and nothing
+/// else (polarity and window automatic).
+pub fn hp_detector(period: f64, code_size: usize) -> Detector {
+    let settings = DetectorSettings {
+        pattern_type: MarkerKind::HpCode,
+        period: Some(period),
+        code_size: Some(code_size),
+        ..Default::default()
+    };
+    Detector::new(settings.to_config().expect("HP settings")).expect("HP detector")
 }
