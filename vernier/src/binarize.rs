@@ -77,15 +77,33 @@ impl ThresholdMap {
                 scope.spawn(move || block_extremes(rows, w, lo, hi));
             }
         });
-        self.floor = min_contrast.unwrap_or_else(|| {
-            // The quietest tenth of the blocks sees only noise in any real image; the range of
-            // 64 Gaussian samples is about 4.9 standard deviations.
-            let mut ranges: Vec<f32> = self.min.iter().zip(&self.max).map(|(l, h)| h - l).collect();
-            let k = ranges.len() / 10;
-            let (_, range, _) = ranges.select_nth_unstable_by(k, f32::total_cmp);
-            (NOISE_FACTOR * *range / RANGE_PER_SIGMA).max(MIN_FLOOR)
-        });
+        self.floor = min_contrast.unwrap_or_else(|| floor_from_blocks(&self.min, &self.max));
         self.choose_thresholds();
+    }
+
+    /// The contrast floor [`ThresholdMap::compute`] derives for `image` (6 noise deviations, at
+    /// least 0.015), from the 8×8 blocks of every few block rows (a sample is enough for the
+    /// quietest tenth; large images are read only in part).
+    pub fn noise_floor(image: &GreyImage) -> f32 {
+        let w = image.width();
+        let bw = w.div_ceil(BLOCK);
+        let block_rows = image.height() / BLOCK;
+        let stride = (block_rows / FLOOR_SAMPLE_ROWS).max(1);
+        let sampled = block_rows.div_ceil(stride);
+        let (mut lo, mut hi) = (
+            vec![f32::INFINITY; sampled * bw],
+            vec![f32::NEG_INFINITY; sampled * bw],
+        );
+        let px = image.pixels();
+        for (i, by) in (0..block_rows).step_by(stride).enumerate() {
+            let rows = &px[by * BLOCK * w..(by + 1) * BLOCK * w];
+            let range = i * bw..(i + 1) * bw;
+            block_extremes(rows, w, &mut lo[range.clone()], &mut hi[range]);
+        }
+        if lo.is_empty() {
+            return MIN_FLOOR;
+        }
+        floor_from_blocks(&lo, &hi)
     }
 
     /// Contrast floor of the last computation, intensity units.
@@ -164,6 +182,18 @@ impl ThresholdMap {
         }
     }
 }
+
+/// Contrast floor from block extremes: the quietest tenth of the blocks sees only noise in any
+/// real image, and the range of 64 Gaussian samples is about 4.9 standard deviations.
+fn floor_from_blocks(min: &[f32], max: &[f32]) -> f32 {
+    let mut ranges: Vec<f32> = min.iter().zip(max).map(|(l, h)| h - l).collect();
+    let k = ranges.len() / 10;
+    let (_, range, _) = ranges.select_nth_unstable_by(k, f32::total_cmp);
+    (NOISE_FACTOR * *range / RANGE_PER_SIGMA).max(MIN_FLOOR)
+}
+
+/// Block rows sampled at least by [`ThresholdMap::noise_floor`] before it skips any.
+const FLOOR_SAMPLE_ROWS: usize = 32;
 
 /// Minimum and maximum of each 8×8 block of the rows `px` (`w` wide) into `lo`, `hi`.
 fn block_extremes(px: &[f32], w: usize, lo: &mut [f32], hi: &mut [f32]) {

@@ -352,6 +352,27 @@ impl GreyImage {
         })
     }
 
+    /// A 0×0 placeholder for buffers filled later (never handed to users).
+    pub(crate) fn empty() -> GreyImage {
+        GreyImage {
+            width: 0,
+            height: 0,
+            pixels: Vec::new(),
+        }
+    }
+
+    /// This image binned 2×2 into `out` (its buffer reused; see [`bin_2x2`] for the frame).
+    /// `None` when a side is below 2 pixels.
+    pub(crate) fn binned_2x2_into(&self, out: &mut GreyImage) -> Option<()> {
+        let (cb, rb) = (self.width / 2, self.height / 2);
+        if cb == 0 || rb == 0 {
+            return None;
+        }
+        bin_2x2(&self.pixels, self.width, rb, cb, &mut out.pixels);
+        (out.width, out.height) = (cb, rb);
+        Some(())
+    }
+
     /// The crop `[col0, col0+width) × [row0, row0+height)`, which must lie inside the image.
     pub fn crop(&self, col0: usize, row0: usize, width: usize, height: usize) -> Result<GreyImage> {
         if col0 + width > self.width || row0 + height > self.height {
@@ -460,6 +481,44 @@ fn luma8(r: u8, g: u8, b: u8) -> f32 {
 
 fn luma16(r: u16, g: u16, b: u16) -> f32 {
     (LUMA_R * r as f32 + LUMA_G * g as f32 + LUMA_B * b as f32) / 65535.0
+}
+
+/// Outputs of at least this many pixels are binned on two threads.
+const PARALLEL_BIN_PIXELS: usize = 1 << 18;
+
+/// 2×2 box average of a `cols`-wide image into `rb × cb` pixels (an odd last row/column is
+/// dropped): binned pixel `(c, r)` covers pixels `2c, 2c + 1` × `2r, 2r + 1`, so its centre
+/// is at `(2c + 0.5, 2r + 0.5)` in the input. Needs `rb ≤ rows / 2`, `cb ≤ cols / 2`.
+pub(crate) fn bin_2x2(pixels: &[f32], cols: usize, rb: usize, cb: usize, out: &mut Vec<f32>) {
+    out.clear();
+    out.resize(rb * cb, 0.0);
+    if rb == 0 || cb == 0 {
+        return;
+    }
+    let bin_rows = |first_row: usize, band: &mut [f32]| {
+        for (i, dst) in band.chunks_exact_mut(cb).enumerate() {
+            let r = first_row + i;
+            let top = &pixels[2 * r * cols..2 * r * cols + 2 * cb];
+            let bottom = &pixels[(2 * r + 1) * cols..(2 * r + 1) * cols + 2 * cb];
+            for ((d, t), b) in dst
+                .iter_mut()
+                .zip(top.chunks_exact(2))
+                .zip(bottom.chunks_exact(2))
+            {
+                *d = 0.25 * (t[0] + t[1] + b[0] + b[1]);
+            }
+        }
+    };
+    if rb * cb < PARALLEL_BIN_PIXELS {
+        bin_rows(0, out);
+        return;
+    }
+    let half = rb.div_ceil(2);
+    let (first, second) = out.split_at_mut(half * cb);
+    std::thread::scope(|s| {
+        s.spawn(|| bin_rows(0, first));
+        bin_rows(half, second);
+    });
 }
 
 #[cfg(test)]

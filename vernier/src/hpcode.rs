@@ -2,8 +2,8 @@
 //! absolute pose.
 //!
 //! Pipeline, one module per step:
-//! 1. [`finders`]: finder squares from signed 1-D edges of every row and column, thresholds
-//!    from the image's gradient statistics, polarity from the edge signs;
+//! 1. [`finders`]: finder squares as nested regions of a scale-free local binarisation, both
+//!    polarities, coarse to fine on a pyramid of binned copies;
 //! 2. [`grouping`]: triples of finders that fit the marker geometry (right angle, equal legs
 //!    `W − 7` modules long); leftovers are ignored;
 //! 3. a window holding only the marker's dot grid (inside the marker, clear of the finders)

@@ -17,11 +17,13 @@
 //! (the edge of the part) or imaged as two outlines still counts. Text, grids, stripes and the
 //! dot grid have no such nesting; what else might is rejected by the marker geometry and grid.
 
-use crate::binarize::{Region, Regions, ThresholdMap};
+use crate::binarize::{Region, Regions, ThresholdMap, BLOCK};
 use crate::grey_image::{GreyImage, Polarity};
 use nalgebra::Vector2;
+use std::borrow::Cow;
 
-/// Images with at least this many pixels are labelled at their threshold levels in parallel.
+/// Images (and windows) with at least this many pixels are labelled at their threshold levels
+/// in parallel.
 const PARALLEL_MIN_PIXELS: usize = 1 << 18;
 /// Closest accepted distance between two finders of the same size, modules (see
 /// [`crowded`]; two markers touching edge to edge have finders 7 modules apart).
@@ -42,6 +44,27 @@ const MIN_BOX_FILL: f64 = 0.4;
 /// Largest bounding-box aspect ratio of ring and centre.
 const MAX_ASPECT: f64 = 1.8;
 
+/// Most 2×2 binnings of the finder pyramid (coarsest level: a quarter of the resolution).
+const MAX_BINNINGS: usize = 2;
+/// A binned level is built only if it keeps at least this many pixels (256²): smaller images
+/// are labelled at full resolution only, which is cheap.
+const MIN_LEVEL_PIXELS: usize = 1 << 16;
+/// Compact closed regions of a binned level up to this filled area, pixels, may be finders too
+/// small for it: the next finer level is labelled around them. A binned level keeps the gap
+/// of finders with modules from ~1.5 px open; smaller ones merge into one blob of at most
+/// `(7·1.5)²` px, and the centre of a finder it resolves is `(3m)²`, so a finder of any
+/// size leaves such a region at some level (the finer one finds it; dedup keeps one).
+const REFINE_MAX_AREA: f64 = 121.0;
+/// Smallest such region, pixels (see [`might_be_small_centre`]).
+const REFINE_MIN_AREA: f64 = 4.0;
+/// Margin labelled at the finer level around such a region, its blocks: the ring of the
+/// finder around its centre (2 modules of up to 4 px at the finer level) and some more.
+const REFINE_MARGIN_BLOCKS: usize = 2;
+/// Windows covering at least this many pixels are labelled on two threads.
+const PARALLEL_WINDOW_PIXELS: usize = 1 << 16;
+/// A finer level is labelled whole when its windows would cover more than this fraction.
+const WHOLE_LEVEL_FRACTION: usize = 2;
+
 /// A finder square found in the image.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Finder {
@@ -56,12 +79,34 @@ pub struct Finder {
     pub score: f64,
 }
 
+impl Finder {
+    /// The same finder in the frame of the image that `level` binnings 2×2 turned into the
+    /// image it was found in, at `origin` (pixels of that level) of it: binned pixel `c`
+    /// covers pixels `2c, 2c + 1`, whose centre is `2c + ½`.
+    fn in_full_image(self, origin: (usize, usize), level: usize) -> Finder {
+        let scale = (1usize << level) as f64;
+        let origin = Vector2::new(origin.0 as f64, origin.1 as f64);
+        Finder {
+            center: (self.center + origin) * scale + Vector2::repeat((scale - 1.0) / 2.0),
+            module_px: self.module_px * scale,
+            ..self
+        }
+    }
+}
+
 /// Reusable buffers of the finder search (one per detector).
+///
+/// The search runs coarse to fine on a pyramid of 2×2-binned copies, so that a large image
+/// is read in full only once (to bin it): the coarsest level is labelled whole; each finer
+/// level only around the closed regions of the level above it that are small enough to be
+/// the centre of a finder that level cannot resolve ([`REFINE_MAX_AREA`]). A finder's centre
+/// always stays such a region, dots or not, so no scale is skipped; clutter only costs time.
 #[derive(Default)]
 pub(crate) struct FinderScanner {
-    thresholds: ThresholdMap,
-    /// One labelling per threshold level (they run in parallel on large images).
-    regions: [Regions; LEVELS.len()],
+    /// `binned[k]`: the image binned `k + 1` times.
+    binned: Vec<GreyImage>,
+    /// One set of labelling buffers per thread.
+    labelling: [Labelling; 2],
 }
 
 impl FinderScanner {
@@ -71,35 +116,349 @@ impl FinderScanner {
         if image.width() < 8 || image.height() < 8 {
             return Vec::new();
         }
-        self.thresholds
-            .compute(image, min_contrast.map(|c| c as f32));
-        let map = &self.thresholds;
-        let scan = |(labels, level): (&mut Regions, f32)| -> Vec<Finder> {
-            labels.label(image, map, level);
-            let regions = &labels.regions;
-            regions
-                .iter()
-                .filter_map(|c| finder_at(regions, c))
-                .collect()
-        };
-        let jobs = self.regions.iter_mut().zip(LEVELS);
-        let found: Vec<Finder> = if image.width() * image.height() >= PARALLEL_MIN_PIXELS {
-            std::thread::scope(|s| {
-                let handles: Vec<_> = jobs.map(|job| s.spawn(move || scan(job))).collect();
-                handles
-                    .into_iter()
-                    .flat_map(|h| h.join().unwrap_or_default())
-                    .collect()
-            })
-        } else {
-            jobs.flat_map(scan).collect()
-        };
+        let levels = self.build_pyramid(image);
+        let min_contrast = min_contrast.map(|c| c as f32);
+        let mut found = Vec::new();
+        // Bounding boxes of small regions of the level above, its pixels.
+        let mut small = Vec::new();
+        for level in (0..=levels).rev() {
+            let level_image = if level == 0 {
+                image
+            } else {
+                &self.binned[level - 1]
+            };
+            let windows = if level == levels {
+                vec![Window::whole(level_image)]
+            } else {
+                refine_windows(level_image, &small)
+            };
+            if windows.is_empty() {
+                break;
+            }
+            // The floor of a window is that of its whole level (a window is mostly texture).
+            let floor = match (min_contrast, windows.len()) {
+                (Some(c), _) => Some(c),
+                (None, 1) if windows[0].is_whole(level_image) => None,
+                (None, _) => Some(ThresholdMap::noise_floor(level_image)),
+            };
+            let (finders, finer_small) =
+                scan_windows(&mut self.labelling, level_image, &windows, floor, level > 0);
+            found.extend(finders.into_iter().map(|f| f.in_full_image((0, 0), level)));
+            small = finer_small;
+        }
         let unique = dedup(found);
         unique
             .iter()
             .filter(|f| !crowded(f, &unique))
             .copied()
             .collect()
+    }
+
+    /// Bins `image` into `self.binned` as far as [`MAX_BINNINGS`] and [`MIN_LEVEL_PIXELS`]
+    /// allow; returns the number of binned levels.
+    fn build_pyramid(&mut self, image: &GreyImage) -> usize {
+        let mut levels = 0;
+        let (mut w, mut h) = (image.width(), image.height());
+        while levels < MAX_BINNINGS && (w / 2) * (h / 2) >= MIN_LEVEL_PIXELS {
+            if self.binned.len() <= levels {
+                self.binned.push(GreyImage::empty());
+            }
+            let (done, rest) = self.binned.split_at_mut(levels);
+            let source = done.last().unwrap_or(image);
+            if source.binned_2x2_into(&mut rest[0]).is_none() {
+                break;
+            }
+            levels += 1;
+            (w, h) = (w / 2, h / 2);
+        }
+        levels
+    }
+}
+
+/// Finders of the `windows` of `image` (in its frame) and, with `want_small`, the boxes of
+/// their small regions ([`might_be_small_centre`]), on two threads when there is enough work.
+fn scan_windows(
+    labelling: &mut [Labelling; 2],
+    image: &GreyImage,
+    windows: &[Window],
+    floor: Option<f32>,
+    want_small: bool,
+) -> (Vec<Finder>, Vec<[u32; 4]>) {
+    let scan_group = |labelling: &mut Labelling, group: &[Window]| {
+        let (mut finders, mut small) = (Vec::new(), Vec::new());
+        for w in group {
+            let view = w.view(image);
+            let (ox, oy) = (w.col0 as f64, w.row0 as f64);
+            let found = labelling.scan(&view, floor, w.origin(), want_small.then_some(&mut small));
+            finders.extend(found.into_iter().map(|f| Finder {
+                center: f.center + Vector2::new(ox, oy),
+                ..f
+            }));
+        }
+        (finders, small)
+    };
+    let area = |w: &Window| w.width * w.height;
+    let total: usize = windows.iter().map(area).sum();
+    if windows.len() < 2 || total < PARALLEL_WINDOW_PIXELS {
+        return scan_group(&mut labelling[0], windows);
+    }
+    // Two groups of about equal area, largest windows first.
+    let mut sorted = windows.to_vec();
+    sorted.sort_by_key(|w| std::cmp::Reverse(area(w)));
+    let (mut groups, mut areas) = ([Vec::new(), Vec::new()], [0, 0]);
+    for w in sorted {
+        let g = usize::from(areas[1] < areas[0]);
+        areas[g] += area(&w);
+        groups[g].push(w);
+    }
+    let [first, second] = labelling;
+    let (a, b) = std::thread::scope(|s| {
+        let handle = s.spawn(|| scan_group(first, &groups[0]));
+        let b = scan_group(second, &groups[1]);
+        (handle.join().unwrap_or_default(), b)
+    });
+    let (mut finders, mut small) = a;
+    finders.extend(b.0);
+    small.extend(b.1);
+    (finders, small)
+}
+
+/// Buffers of one labelling: the threshold map and one region set per threshold level.
+#[derive(Default)]
+struct Labelling {
+    thresholds: ThresholdMap,
+    regions: [Regions; LEVELS.len()],
+}
+
+impl Labelling {
+    /// Finders of `image` in its own pixel frame. With `small`, also pushes there the bounding
+    /// boxes of its small closed regions ([`REFINE_MAX_AREA`]), shifted by `origin`.
+    fn scan(
+        &mut self,
+        image: &GreyImage,
+        floor: Option<f32>,
+        origin: (usize, usize),
+        small: Option<&mut Vec<[u32; 4]>>,
+    ) -> Vec<Finder> {
+        if image.width() < 8 || image.height() < 8 {
+            return Vec::new();
+        }
+        self.thresholds.compute(image, floor);
+        let map = &self.thresholds;
+        let want_small = small.is_some();
+        let (ox, oy) = (origin.0 as u32, origin.1 as u32);
+        let scan = |(labels, level): (&mut Regions, f32)| -> (Vec<Finder>, Vec<[u32; 4]>) {
+            labels.label(image, map, level);
+            let regions = &labels.regions;
+            let finders = regions
+                .iter()
+                .filter_map(|c| finder_at(regions, c))
+                .collect();
+            let small = regions
+                .iter()
+                .filter(|r| want_small && might_be_small_centre(r))
+                .map(|r| {
+                    [
+                        r.bbox[0] + ox,
+                        r.bbox[1] + oy,
+                        r.bbox[2] + ox,
+                        r.bbox[3] + oy,
+                    ]
+                })
+                .collect();
+            (finders, small)
+        };
+        let jobs = self.regions.iter_mut().zip(LEVELS);
+        let results: Vec<(Vec<Finder>, Vec<[u32; 4]>)> =
+            if image.width() * image.height() >= PARALLEL_MIN_PIXELS {
+                std::thread::scope(|s| {
+                    let handles: Vec<_> = jobs.map(|job| s.spawn(move || scan(job))).collect();
+                    handles
+                        .into_iter()
+                        .map(|h| h.join().unwrap_or_default())
+                        .collect()
+                })
+            } else {
+                jobs.map(scan).collect()
+            };
+        let mut finders = Vec::new();
+        let mut boxes = Vec::new();
+        for (f, b) in results {
+            finders.extend(f);
+            boxes.extend(b);
+        }
+        if let Some(out) = small {
+            out.extend(boxes);
+        }
+        finders
+    }
+}
+
+/// A rectangle of a pyramid level, its pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Window {
+    col0: usize,
+    row0: usize,
+    width: usize,
+    height: usize,
+}
+
+impl Window {
+    fn whole(image: &GreyImage) -> Window {
+        Window {
+            col0: 0,
+            row0: 0,
+            width: image.width(),
+            height: image.height(),
+        }
+    }
+
+    fn is_whole(&self, image: &GreyImage) -> bool {
+        *self == Window::whole(image)
+    }
+
+    fn origin(&self) -> (usize, usize) {
+        (self.col0, self.row0)
+    }
+
+    /// The window's pixels (borrowed when it is the whole image).
+    fn view<'a>(&self, image: &'a GreyImage) -> Cow<'a, GreyImage> {
+        if self.is_whole(image) {
+            return Cow::Borrowed(image);
+        }
+        match image.crop(self.col0, self.row0, self.width, self.height) {
+            Ok(crop) => Cow::Owned(crop),
+            // Windows are clipped to the image: cannot happen; label the whole level.
+            Err(_) => Cow::Borrowed(image),
+        }
+    }
+}
+
+/// Windows of `image` (a pyramid level) to label: the blocks within [`REFINE_MARGIN_BLOCKS`]
+/// of the `small` boxes (pixels of the level above, half this resolution), as the bounding
+/// rectangles of their connected groups, merged where they overlap. The whole image when
+/// that is cheaper.
+fn refine_windows(image: &GreyImage, small: &[[u32; 4]]) -> Vec<Window> {
+    let (w, h) = (image.width(), image.height());
+    let (bw, bh) = (w.div_ceil(BLOCK), h.div_ceil(BLOCK));
+    // Marked blocks by 2-D difference array: +1/−1 at box corners, then prefix sums.
+    let mut diff = vec![0i32; (bw + 1) * (bh + 1)];
+    let m = REFINE_MARGIN_BLOCKS;
+    for b in small {
+        let x0 = (2 * b[0] as usize / BLOCK).saturating_sub(m);
+        let y0 = (2 * b[1] as usize / BLOCK).saturating_sub(m);
+        let x1 = ((2 * b[2] as usize + 1) / BLOCK + m + 1).min(bw);
+        let y1 = ((2 * b[3] as usize + 1) / BLOCK + m + 1).min(bh);
+        if x0 >= x1 || y0 >= y1 {
+            continue;
+        }
+        diff[y0 * (bw + 1) + x0] += 1;
+        diff[y0 * (bw + 1) + x1] -= 1;
+        diff[y1 * (bw + 1) + x0] -= 1;
+        diff[y1 * (bw + 1) + x1] += 1;
+    }
+    let mut marked = vec![false; bw * bh];
+    let mut count = 0;
+    let mut above = vec![0i32; bw + 1];
+    for y in 0..bh {
+        let mut run = 0;
+        for x in 0..bw {
+            run += diff[y * (bw + 1) + x];
+            above[x] += run;
+            if above[x] > 0 {
+                marked[y * bw + x] = true;
+                count += 1;
+            }
+        }
+    }
+    if count == 0 {
+        return Vec::new();
+    }
+    if count * WHOLE_LEVEL_FRACTION > bw * bh {
+        return vec![Window::whole(image)];
+    }
+    let mut rects = block_groups(&mut marked, bw, bh);
+    merge_overlapping(&mut rects);
+    rects
+        .into_iter()
+        .map(|[x0, y0, x1, y1]| Window {
+            col0: x0 * BLOCK,
+            row0: y0 * BLOCK,
+            width: ((x1 + 1) * BLOCK).min(w) - x0 * BLOCK,
+            height: ((y1 + 1) * BLOCK).min(h) - y0 * BLOCK,
+        })
+        .collect()
+}
+
+/// A closed, compact region of the size of a small finder or finder centre (from a 2×2 blob
+/// to [`REFINE_MAX_AREA`]).
+fn might_be_small_centre(r: &Region) -> bool {
+    !r.open && (REFINE_MIN_AREA..=REFINE_MAX_AREA).contains(&r.filled_area) && compact(r)
+}
+
+/// Bounding boxes `[x0, y0, x1, y1]` (inclusive blocks) of the 4-connected groups of marked
+/// blocks (consumes the marks).
+fn block_groups(marked: &mut [bool], bw: usize, bh: usize) -> Vec<[usize; 4]> {
+    let mut rects = Vec::new();
+    let mut stack = Vec::new();
+    for start in 0..marked.len() {
+        if !marked[start] {
+            continue;
+        }
+        marked[start] = false;
+        stack.push(start);
+        let mut r = [bw, bh, 0, 0];
+        while let Some(i) = stack.pop() {
+            let (x, y) = (i % bw, i / bw);
+            r = [r[0].min(x), r[1].min(y), r[2].max(x), r[3].max(y)];
+            let mut visit = |j: usize| {
+                if marked[j] {
+                    marked[j] = false;
+                    stack.push(j);
+                }
+            };
+            if x > 0 {
+                visit(i - 1);
+            }
+            if x + 1 < bw {
+                visit(i + 1);
+            }
+            if y > 0 {
+                visit(i - bw);
+            }
+            if y + 1 < bh {
+                visit(i + bw);
+            }
+        }
+        rects.push(r);
+    }
+    rects
+}
+
+/// Replaces overlapping rectangles by their union until none overlap.
+fn merge_overlapping(rects: &mut Vec<[usize; 4]>) {
+    let overlap = |a: &[usize; 4], b: &[usize; 4]| {
+        a[0] <= b[2] && b[0] <= a[2] && a[1] <= b[3] && b[1] <= a[3]
+    };
+    let mut merged = true;
+    while merged {
+        merged = false;
+        'outer: for i in 0..rects.len() {
+            for j in i + 1..rects.len() {
+                if overlap(&rects[i], &rects[j]) {
+                    let b = rects.swap_remove(j);
+                    let a = &mut rects[i];
+                    *a = [
+                        a[0].min(b[0]),
+                        a[1].min(b[1]),
+                        a[2].max(b[2]),
+                        a[3].max(b[3]),
+                    ];
+                    merged = true;
+                    break 'outer;
+                }
+            }
+        }
     }
 }
 
@@ -206,6 +565,12 @@ mod tests {
     /// A bright finder of module `m` pixels centred at (cx, cy), axis-aligned, on black.
     fn finder_image(w: usize, h: usize, cx: f64, cy: f64, m: f64) -> GreyImage {
         let mut px = vec![0.0f32; w * h];
+        paint_finder(&mut px, w, cx, cy, m);
+        GreyImage::new(w, h, px).unwrap()
+    }
+
+    fn paint_finder(px: &mut [f32], w: usize, cx: f64, cy: f64, m: f64) {
+        let h = px.len() / w;
         for r in 0..h {
             for c in 0..w {
                 let (u, v) = ((c as f64 - cx) / m + 3.5, (r as f64 - cy) / m + 3.5);
@@ -220,7 +585,30 @@ mod tests {
                 }
             }
         }
-        GreyImage::new(w, h, px).unwrap()
+    }
+
+    #[test]
+    fn pyramid_finds_finders_of_every_size_in_a_large_image() {
+        // 1100² is binned twice; modules 2 and 5 px are too small for the coarsest level and
+        // must be found by labelling finer levels around them.
+        let (w, h) = (1100, 1100);
+        let mut px = vec![0.0f32; w * h];
+        let placed = [(200.3, 210.7, 2.0), (700.0, 300.0, 5.0), (520.0, 760.0, 40.0)];
+        for &(cx, cy, m) in &placed {
+            paint_finder(&mut px, w, cx, cy, m);
+        }
+        let image = GreyImage::new(w, h, px).unwrap();
+        let found = FinderScanner::default().find(&image, None);
+        for &(cx, cy, m) in &placed {
+            // Painted on whole pixels: the centre is within a pixel.
+            let expected = Vector2::new(cx, cy);
+            assert!(
+                found.iter().any(|f| f.polarity == Polarity::BrightDots
+                    && (f.center - expected).norm() < 1.0
+                    && (f.module_px / m - 1.0).abs() < 0.1),
+                "module {m}: {found:?}"
+            );
+        }
     }
 
     #[test]

@@ -437,7 +437,7 @@ impl PhaseEngine {
         let (rb, cb) = (rows / 2, cols / 2);
         let cache = self.cache_for(rb, cb, params.sigma, false);
         let mut binned = std::mem::take(&mut cache.binned);
-        bin_2x2(image.pixels(), cols, rb, cb, &mut binned);
+        crate::grey_image::bin_2x2(image.pixels(), cols, rb, cb, &mut binned);
         let estimate = spectral_estimate(&binned, cache, params);
         let result = match estimate {
             Ok(mut e)
@@ -476,20 +476,6 @@ impl PhaseEngine {
         };
         cache.binned = binned;
         result
-    }
-}
-
-/// 2×2 box average of a `cols`-wide image into `rb × cb` pixels (an odd last row/column is
-/// dropped).
-fn bin_2x2(pixels: &[f32], cols: usize, rb: usize, cb: usize, out: &mut Vec<f32>) {
-    out.clear();
-    out.reserve(rb * cb);
-    for r in 0..rb {
-        let (top, bottom) = (&pixels[2 * r * cols..], &pixels[(2 * r + 1) * cols..]);
-        out.extend(
-            (0..cb)
-                .map(|c| 0.25 * (top[2 * c] + top[2 * c + 1] + bottom[2 * c] + bottom[2 * c + 1])),
-        );
     }
 }
 
