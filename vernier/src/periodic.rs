@@ -1,5 +1,5 @@
-//! Detector of plain periodic dot grids (METHOD.md §4.8): the pose modulo one period and the
-//! grid's 90° symmetry.
+//! Detector of plain periodic dot grids (docs/design.md#periodic): the pose modulo one period and
+//! the grid's 90° symmetry.
 
 use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
@@ -84,7 +84,7 @@ impl PeriodicDetector {
     }
 }
 
-/// METHOD.md §4.8: pose from the two planes with zero period shifts.
+/// Pose from the two planes with zero period shifts (docs/design.md#periodic).
 pub fn periodic_pose(analysis: &PhaseAnalysis, period: f64) -> Pose {
     let [p1, p2] = analysis.planes;
     Pose::planar(

@@ -1,5 +1,6 @@
-//! Megarena absolute encoded grids (METHOD.md §1.3, §5.1): absolute position of the image
-//! centre over the whole pattern, full-turn orientation, and the out-of-plane pose (§4.9).
+//! Megarena absolute encoded grids (docs/design.md#megarena): absolute position of the image centre
+//! over the whole pattern, full-turn orientation, and the out-of-plane pose
+//! (docs/design.md#pose-3d).
 //!
 //! Pipeline (one way, image → planes → lattice → code → pose):
 //! 1. the phase engine measures the two phase planes (sub-pixel lattice, modulo one period);
@@ -116,7 +117,7 @@ pub struct MegarenaDetection {
 }
 
 impl MegarenaDetection {
-    /// Out-of-plane pose (METHOD.md §4.9): the two orthographic solutions and the one the
+    /// Out-of-plane pose (docs/design.md#pose-3d): the two orthographic solutions and the one the
     /// perspective cue of `image` (the analysed image, same polarity as given to `detect`)
     /// favours. `focal_px`: focal length in pixels for `z = pixel_size·focal`, `None` for
     /// `z = 0`. See [`pose3d`].
@@ -248,8 +249,8 @@ impl MegarenaDetector {
     }
 }
 
-/// METHOD.md §5.1.6: planar pose from the absolute planes, `x = −P·c_x/2π`, `y = −P·c_y/2π`,
-/// `alpha` = direction of the x phase gradient, pixel size `P·|∇φ_x|/2π`.
+/// Planar pose from the absolute planes (docs/design.md#megarena-pose): `x = −P·c_x/2π`,
+/// `y = −P·c_y/2π`, `alpha` = direction of the x phase gradient, pixel size `P·|∇φ_x|/2π`.
 pub fn pose_from_planes(planes: &PatternPlanes, period: f64) -> Pose {
     let [px, py] = planes;
     Pose::planar(

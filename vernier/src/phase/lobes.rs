@@ -1,4 +1,4 @@
-//! Lobe (spectral peak) search, METHOD.md §4.3, on the half spectrum.
+//! Lobe (spectral peak) search, docs/design.md#phase-lobes, on the half spectrum.
 //!
 //! Differences from the original, on purpose:
 //! * the ring band-pass defaults to 4 bins (not 20), so small windows with few periods work;
@@ -21,7 +21,7 @@ pub struct Lobe {
     pub kx: i64,
     /// Frequency along rows, cycles per image height.
     pub ky: i64,
-    /// Root of the 3×3 neighbourhood energy divided by the pixel count (METHOD.md's "peak
+    /// Root of the 3×3 neighbourhood energy divided by the pixel count (the original's "peak
     /// power" up to the smoothing kernel).
     pub power: f64,
     /// Root of the 3×3 energy over that of an average 3×3 neighbourhood of the ring

@@ -1,4 +1,5 @@
-//! The fine phase engine (METHOD.md §4): image → spectrum → two lobes → two phase planes.
+//! The fine phase engine (docs/design.md#phase-engine): image → spectrum → two lobes → two phase
+//! planes.
 //!
 //! Steps, each in its own module:
 //! 1. [`spectrum`]: real-to-complex 2-D FFT (plans and buffers cached per image size);
@@ -33,7 +34,8 @@ use spectrum::SpectrumPlan;
 /// Smallest accepted image side, pixels: below this no lobe can be told from DC.
 pub const MIN_IMAGE_SIDE: usize = 16;
 
-/// Parameters of the phase engine (METHOD.md §7, with the same names where they exist).
+/// Parameters of the phase engine (docs/design.md#settings; the original's names where it has
+/// them).
 #[derive(Clone, Debug, PartialEq)]
 pub struct PhaseParams {
     /// Gaussian band-pass σ, spectrum bins (cycles per image). Default 3.
@@ -61,10 +63,11 @@ pub struct PhaseParams {
     /// with `refine_iterations = 0` the full-size transform is always used; with refinement the
     /// band-pass planes are only a starting point and the result is identical either way.
     pub full_resolution_bandpass: bool,
-    /// Run the spectral stage (FFT, lobe search, band-pass) on a 2×2-binned copy of images of
-    /// at least 128 px per side, 4× cheaper; the full-size refinement then restores full
-    /// accuracy (tests/periodic_roundtrip.rs checks both give the same result). Only used when
-    /// refining; grids finer than 6 px per period fall back to the full-size stage. Default true.
+    /// Run the spectral stage (FFT, lobe search, band-pass; docs/design.md#phase-binning) on a
+    /// 2×2-binned copy of images of at least 128 px per side, 4× cheaper; the full-size
+    /// refinement then restores full accuracy (tests/periodic_roundtrip.rs checks both give the
+    /// same result). Only used when refining; grids finer than 6 px per period fall back to the
+    /// full-size stage. Default true.
     pub spectrum_binning: bool,
     /// Keep the decimated phase maps in the result (for display). Default false.
     pub keep_phase_maps: bool,
@@ -384,8 +387,9 @@ impl PhaseEngine {
         })
     }
 
-    /// Refines `start` planes against `image` with a per-pixel weight map (row-major, same size
-    /// as the image, values ≥ 0; NaN counts as 0) multiplying the engine's window.
+    /// Refines `start` planes against `image` (docs/design.md#phase-weighted) with a per-pixel
+    /// weight map (row-major, same size as the image, values ≥ 0; NaN counts as 0) multiplying the
+    /// engine's window.
     ///
     /// Coarse steps use it once they know which pixels do not follow the periodic model: a
     /// Megarena's missing code dots, an HP code's finders and ID dots, a stamp's frame and
@@ -493,7 +497,8 @@ fn bin_2x2(pixels: &[f32], cols: usize, rb: usize, cb: usize, out: &mut Vec<f32>
     }
 }
 
-/// Spectrum, lobe search and band-pass planes (METHOD.md §4.2–4.6) of a `cache`-sized image.
+/// Spectrum, lobe search and band-pass planes (docs/design.md#phase-engine) of a `cache`-sized
+/// image.
 fn spectral_estimate(
     pixels: &[f32],
     cache: &mut SizeCache,

@@ -1,25 +1,24 @@
-//! Stamp and bitmap markers (METHOD.md §1.5, §5.3, §5.4): identity and absolute pose of
+//! Stamp and bitmap markers (docs/design.md#stamp): identity and absolute pose of
 //! markers drawn as 0/1 bitmaps on the half-period grid.
 //!
 //! Two ways to find them, chosen from the bitmaps ([`StampSearch::Auto`]):
-//! * **framed** (stamps: bitmaps with a solid border ring): every quadrilateral outline of a
-//!   region brighter or darker than its surroundings is a candidate ([`quads`]), in the
-//!   polarity of that region; around its centre a square window, its weighted mean removed
-//!   (the window's own spectrum would otherwise swamp a faint grid) and apodised by the
-//!   flat-top radial window of METHOD.md §5.3.2, goes through the phase engine; the frame's
-//!   size must agree with the measured period; the bitmap thumbnail read along the phase
-//!   planes (`thumbnail`) is matched against every bitmap in its 8 dihedral orientations and a
-//!   few period shifts (`matching`); the reading must be confident
-//!   ([`StampParams::min_decode_confidence`]) and the frame it predicts must lie where the
-//!   frame was found ([`StampParams::max_frame_offset`]); the pose follows. Any number of
-//!   stamps per image, several with the same bitmap included (the original keeps one of
+//! * **framed** (stamps: bitmaps with a solid border ring): every quadrilateral outline of a region
+//!   brighter or darker than its surroundings is a candidate ([`quads`]), in the polarity of that
+//!   region; around its centre a square window, its weighted mean removed (the window's own
+//!   spectrum would otherwise swamp a faint grid) and apodised by the flat-top radial window
+//!   (docs/design.md#stamp-window), goes through the phase engine; the frame's size must agree with
+//!   the measured period; the bitmap thumbnail read along the phase planes (`thumbnail`) is matched
+//!   against every bitmap in its 8 dihedral orientations and a few period shifts (`matching`); the
+//!   reading must be confident ([`StampParams::min_decode_confidence`]) and the frame it predicts
+//!   must lie where the frame was found ([`StampParams::max_frame_offset`]); the pose follows. Any
+//!   number of stamps per image, several with the same bitmap included (the original keeps one of
 //!   them).
 //! * **full image** (other bitmaps, e.g. an HP code layout seen as a bitmap): the phase engine on
 //!   the whole image, then the same thumbnail and matching over every position of the bitmap,
 //!   then a second, apodised measurement in a window on the bitmap found (the whole-image fit
 //!   weighs an off-centre marker unevenly and leaks at its edges: ~1e-3 rad, 5e-3 px).
 //!
-//! Poses (METHOD.md §6): the pattern origin is the bitmap's central dot; `alpha` is the
+//! Poses (docs/design.md#frames): the pattern origin is the bitmap's central dot; `alpha` is the
 //! direction of the bitmap's x axis (increasing column) in the image, averaged with that of its
 //! y axis turned back by 90° (forward for a mirrored view), and the pixel size the mean of the
 //! two grid frequencies. The central dot's image position is where the two phase planes take
@@ -29,13 +28,12 @@
 //! `alpha − π/2`).
 //!
 //! Differences from the original, on purpose: no silent loss of same-ID stamps; the thumbnail
-//! covers the whole bitmap (frame included) instead of its interior, so the period shift is
-//! pinned by the frame; the period-shift sign slip of METHOD.md §9.12 cannot occur (the match
-//! states where the origin is in the thumbnail); mirrored markers are recognised and reported
-//! with their proper pose (or dropped with [`StampParams::allow_mirrored`] off); the window is
-//! sized from the frame (largest `2^a·3^b` side inside the dot field) rather than fixed; a
-//! reading that is a near tie or a pose that disagrees with the frame is dropped, never
-//! reported.
+//! covers the whole bitmap (frame included) instead of its interior, so the period shift is pinned
+//! by the frame; the original's period-shift sign slip (docs/design.md#defect-stamp-shift) cannot
+//! occur (the match states where the origin is in the thumbnail); mirrored markers are recognised
+//! and reported with their proper pose (or dropped with [`StampParams::allow_mirrored`] off); the
+//! window is sized from the frame (largest `2^a·3^b` side inside the dot field) rather than fixed;
+//! a reading that is a near tie or a pose that disagrees with the frame is dropped, never reported.
 
 mod matching;
 pub mod quads;
