@@ -215,6 +215,35 @@ pub struct HpCodeMarker {
 
 /// Detects HP code markers. Keeps the phase engine's FFT plans and the finder scanner's buffers
 /// between frames.
+///
+/// # Example
+///
+/// ```
+/// use vernier::hpcode::{HpCodeDetector, HpCodeParams};
+/// use vernier::layout::HpCodeLayout;
+/// use vernier::phase::wrap_to_pi;
+/// use vernier::render::{render, RenderOptions};
+/// use vernier::Pose;
+///
+/// # fn main() -> vernier::Result<()> {
+/// // A 33-cell HP code (17 × 17 dots, 9 ID bits) of 10 µm period carrying ID 361, seen at
+/// // 1.25 µm per pixel (a 132-px marker) turned by 2.5 rad.
+/// let layout = HpCodeLayout::from_half_periods(10.0, 33)?.with_id(361)?;
+/// let truth = Pose::planar(6.0, -4.0, 2.5, 1.25);
+/// let options = RenderOptions { blur_sigma: 0.5, ..RenderOptions::new(256, 256) };
+/// let image = render(&layout, &truth, &options)?;
+///
+/// let mut detector = HpCodeDetector::new(HpCodeParams::new(10.0, 33))?;
+/// let markers = detector.detect(&image)?;
+/// assert_eq!(markers.len(), 1);
+/// let (marker, tolerance) = (&markers[0], 0.01 * truth.pixel_size);
+/// assert_eq!(marker.id, 361);
+/// assert!((marker.pose.x - truth.x).abs() < tolerance);
+/// assert!((marker.pose.y - truth.y).abs() < tolerance);
+/// assert!(wrap_to_pi(marker.pose.alpha - truth.alpha).abs() < 1e-4);
+/// # Ok(())
+/// # }
+/// ```
 pub struct HpCodeDetector {
     params: HpCodeParams,
     engine: PhaseEngine,

@@ -284,6 +284,52 @@ pub struct StampDetection {
 
 /// Finds stamp / bitmap markers and measures their absolute poses. Keeps FFT plans, the
 /// apodisation windows and the frame-search buffers between frames.
+///
+/// # Example
+///
+/// ```
+/// use vernier::layout::BitmapLayout;
+/// use vernier::phase::wrap_to_pi;
+/// use vernier::render::{render, RenderOptions};
+/// use vernier::stamp::{StampDetector, StampParams};
+/// use vernier::Pose;
+///
+/// # fn main() -> vernier::Result<()> {
+/// // A 69 × 69-cell stamp: a 3-cell solid frame, a 1-cell gap, 31 × 31 dots on the even
+/// // cells and a solid L-shaped glyph that breaks the symmetry.
+/// let n = 69;
+/// let rows: Vec<Vec<u8>> = (0..n)
+///     .map(|r| {
+///         (0..n)
+///             .map(|c| {
+///                 let frame = r < 3 || c < 3 || r >= n - 3 || c >= n - 3;
+///                 let inside = (4..n - 4).contains(&r) && (4..n - 4).contains(&c);
+///                 let dot = inside && r % 2 == 0 && c % 2 == 0;
+///                 let glyph = ((8..19).contains(&r) && (50..53).contains(&c))
+///                     || ((16..19).contains(&r) && (50..61).contains(&c));
+///                 u8::from(frame || dot || glyph)
+///             })
+///             .collect()
+///     })
+///     .collect();
+/// let bitmap = BitmapLayout::from_rows(10.0, &rows)?;
+///
+/// // 10 µm period at 2 µm per pixel: 5 px per period, a 173-px stamp turned by 0.25 rad.
+/// let truth = Pose::planar(3.0, -2.0, 0.25, 2.0);
+/// let options = RenderOptions { blur_sigma: 0.5, ..RenderOptions::new(256, 256) };
+/// let image = render(&bitmap, &truth, &options)?;
+///
+/// let mut detector = StampDetector::new(StampParams::new(10.0, vec![bitmap]))?;
+/// let stamps = detector.detect(&image)?;
+/// assert_eq!(stamps.len(), 1);
+/// let (stamp, tolerance) = (&stamps[0], 0.01 * truth.pixel_size);
+/// assert_eq!(stamp.id, 0); // index of its bitmap
+/// assert!((stamp.pose.x - truth.x).abs() < tolerance);
+/// assert!((stamp.pose.y - truth.y).abs() < tolerance);
+/// assert!(wrap_to_pi(stamp.pose.alpha - truth.alpha).abs() < 1e-4);
+/// # Ok(())
+/// # }
+/// ```
 pub struct StampDetector {
     params: StampParams,
     mode: StampSearch,
