@@ -2,18 +2,19 @@
 //! absolute pose.
 //!
 //! Pipeline, one module per step:
-//! 1. [`finders`]: finder squares from signed 1-D edges of every row and column, thresholds
-//!    from the image's gradient statistics, polarity from the edge signs;
+//! 1. [`finders`]: finder squares as nested regions (centre in gap in ring) of the scale-free
+//!    local binarisation ([`crate::binarize`]) at three threshold levels, each with its own
+//!    polarity;
 //! 2. [`grouping`]: triples of finders that fit the marker geometry (right angle, equal legs
 //!    `W − 7` modules long); leftovers are ignored;
 //! 3. a window holding only the marker's dot grid (inside the marker, clear of the finders)
 //!    around the coarse centre, [`PhaseEngine::analyze`] (refined planes); a radial Hann
 //!    apodisation only for windows larger than the marker (the original's 256/512 px);
-//! 4. [`fine`]: planes assigned to the pattern axes seen by the finders (full `(−π, π]`
+//! 4. `fine`: planes assigned to the pattern axes seen by the finders (full `(−π, π]`
 //!    orientation), marker width measured in whole periods, centre = grid point nearest to the
 //!    coarse centre (no half-period limit); then a second analysis on the window the measured
 //!    centre and size call for, so the result does not depend on the coarse stage;
-//! 5. [`marker_id`]: ID read at the measured dot positions; a mirrored marker (seen from its
+//! 5. `marker_id`: ID read at the measured dot positions; a mirrored marker (seen from its
 //!    back, or a flipped image) is recognised from where its ID dots are.
 //!
 //! Poses follow docs/design.md#frames: `(x, y) = Rz(−α)·(camera-frame position of the centre dot)`,

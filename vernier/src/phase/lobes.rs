@@ -8,7 +8,7 @@
 //! * a lobe must stand out of the ring's RMS amplitude by `min_peak_prominence`, so pure noise is
 //!   reported as "not found" instead of yielding a random pose;
 //! * a diagonal harmonic picked instead of a fundamental is detected and replaced
-//!   ([`fundamentals`]);
+//!   (`fundamentals`);
 //! * one streaming pass over the stored half spectrum keeps the strongest few local maxima;
 //!   3×3 energies are only evaluated there (≈ 0.5 ms for a 1024² spectrum).
 
