@@ -419,10 +419,11 @@ impl PhaseEngine {
     /// weight map (row-major, same size as the image, values ≥ 0; NaN counts as 0) multiplying the
     /// engine's window.
     ///
-    /// Coarse steps use it once they know which pixels do not follow the periodic model: a
-    /// Megarena's missing code dots, an HP code's finders and ID dots, a stamp's frame and
-    /// glyphs. Giving them weight 0 removes the bias they cause (up to 1e-2 px on a Megarena
-    /// with the plain refinement). Cost ≈ 50 multiply-adds per pixel and iteration.
+    /// For coarse steps that know which pixels do not follow the periodic model: a Megarena's
+    /// missing code dots, an HP code's finders and ID dots, a stamp's frame and glyphs. Giving
+    /// them weight 0 removes the bias they cause (up to 1e-2 px on a Megarena with the plain
+    /// refinement). No detector calls it at present (they keep such pixels out by other means).
+    /// Cost ≈ 50 multiply-adds per pixel and iteration.
     pub fn refine_weighted(
         &mut self,
         image: &GreyImage,

@@ -24,8 +24,8 @@
 //! two grid frequencies. The central dot's image position is where the two phase planes take
 //! the values the match assigns to it, which is exact for any affine view. A mirrored marker (a
 //! flipped image or optical path) gets the proper rigid pose of the pattern seen from behind,
-//! as HP codes do: `gamma = π` (`cTp = Rz(α)·Rx(π)·Trans(x, y, 0)`, so its y axis appears at
-//! `alpha − π/2`).
+//! as HP codes do: `gamma = −π`, a half turn (`cTp = Rz(α)·Rx(π)·Trans(x, y, 0)`, so its y axis
+//! appears at `alpha − π/2`).
 //!
 //! Differences from the original, on purpose: no silent loss of same-ID stamps; the thumbnail
 //! covers the whole bitmap (frame included) instead of its interior, so the period shift is pinned
@@ -111,7 +111,7 @@ pub struct StampParams {
     /// frame's size is checked by [`StampParams::size_tolerance`].)
     pub max_frame_offset: f64,
     /// Report mirrored markers (a flipped image or optical path), with their proper rigid pose
-    /// (`gamma = π`, see the module docs). Default true; false drops them (and mirrored
+    /// (`gamma = −π`, see the module docs). Default true; false drops them (and mirrored
     /// readings are then no rivals of proper ones in the decode confidence).
     pub allow_mirrored: bool,
     /// Phase-engine settings.
