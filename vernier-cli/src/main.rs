@@ -100,7 +100,7 @@ struct RenderArgs {
     /// JSON pattern file.
     #[arg(long)]
     pattern: PathBuf,
-    /// Pose `x,y,alpha`: pattern units and radians (METHOD.md §6 frames).
+    /// Pose `x,y,alpha`: pattern units and radians (frames: docs/design.md#frames).
     #[arg(long, allow_hyphen_values = true)]
     pose: String,
     /// Pattern units per pixel.

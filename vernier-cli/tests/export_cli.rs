@@ -139,7 +139,8 @@ fn bad_requests_fail_with_one_line() {
     let run = vernier(&["export", "--pattern", &custom, &target("c.png")]);
     assert!(!run.status.success());
     assert!(String::from_utf8_lossy(&run.stderr).contains("CustomPattern"));
-    // Fewer than 100 rectangles (the original divided by zero, METHOD.md §9.18).
+    // Fewer than 100 rectangles (the original divided by zero,
+    // docs/design.md#defect-export-progress).
     let run = vernier(&["export", "--pattern", &custom, &target("c.svg")]);
     assert!(
         run.status.success(),

@@ -6,7 +6,7 @@
 //! interleaved, medians, plans warm), hence the cost of the Megarena-specific steps. Frames:
 //! 12-bit code, ~10 px per period, 8-bit quantisation, 1 % noise. Reference: the original
 //! C++ takes 144–157 ms per 1024² frame on the project's 2-core machine (46 ms at 512²,
-//! METHOD.md §10).
+//! docs/design.md#speed).
 
 use std::time::Instant;
 use vernier::layout::MegarenaLayout;

@@ -1,4 +1,4 @@
-//! Scale-free local binarisation and the nesting tree of its regions.
+//! Scale-free local binarisation and the nesting tree of its regions (docs/design.md#hp-binarize).
 //!
 //! Used by the coarse steps to find solid, nested shapes (HP code finder squares) whatever
 //! their size, polarity, contrast or illumination:

@@ -1,4 +1,4 @@
-//! Grey-level images in `[0, 1]`, the input of every detector (METHOD.md §4.1).
+//! Grey-level images in `[0, 1]`, the input of every detector (docs/design.md#input-images).
 //!
 //! Pixels are `f32`, row-major, index `row·width + col`; pixel `(col, row)` is at image
 //! coordinates `(x, y) = (col, row)` with y down. 8-bit values are divided by 255, 16-bit by

@@ -1,22 +1,23 @@
-//! HP code detector (METHOD.md §5.2): every HP code marker in an image, with its ID and
+//! HP code detector (docs/design.md#hpcode): every HP code marker in an image, with its ID and
 //! absolute pose.
 //!
 //! Pipeline, one module per step:
-//! 1. [`finders`]: finder squares as nested regions of a scale-free local binarisation, both
-//!    polarities, coarse to fine on a pyramid of binned copies;
+//! 1. [`finders`]: finder squares as nested regions (centre in gap in ring) of the scale-free
+//!    local binarisation ([`crate::binarize`]) at three threshold levels, each with its own
+//!    polarity, coarse to fine on a pyramid of 2×2-binned copies;
 //! 2. [`grouping`]: triples of finders that fit the marker geometry (right angle, equal legs
 //!    `W − 7` modules long); leftovers are ignored;
 //! 3. a window holding only the marker's dot grid (inside the marker, clear of the finders)
 //!    around the coarse centre, [`PhaseEngine::analyze`] (refined planes); a radial Hann
 //!    apodisation only for windows larger than the marker (the original's 256/512 px);
-//! 4. [`fine`]: planes assigned to the pattern axes seen by the finders (full `(−π, π]`
+//! 4. `fine`: planes assigned to the pattern axes seen by the finders (full `(−π, π]`
 //!    orientation), marker width measured in whole periods, centre = grid point nearest to the
 //!    coarse centre (no half-period limit); then a second analysis on the window the measured
 //!    centre and size call for, so the result does not depend on the coarse stage;
-//! 5. [`marker_id`]: ID read at the measured dot positions; a mirrored marker (seen from its
+//! 5. `marker_id`: ID read at the measured dot positions; a mirrored marker (seen from its
 //!    back, or a flipped image) is recognised from where its ID dots are.
 //!
-//! Poses follow METHOD.md §6: `(x, y) = Rz(−α)·(camera-frame position of the centre dot)`,
+//! Poses follow docs/design.md#frames: `(x, y) = Rz(−α)·(camera-frame position of the centre dot)`,
 //! pattern units. A mirrored marker is reported with `gamma = −π` (rotation by π about the
 //! pattern x axis: the marker seen from behind), which keeps `cTp` a proper rigid transform.
 
@@ -50,7 +51,7 @@ const MIN_WINDOW: usize = 32;
 /// Clearance kept by the automatic window from the finders and the marker edge, modules.
 const WINDOW_CLEARANCE: f64 = 0.5;
 
-/// Settings of [`HpCodeDetector`] (METHOD.md §7 "HP detector").
+/// Settings of [`HpCodeDetector`] (docs/design.md#settings).
 #[derive(Clone, Debug, PartialEq)]
 pub struct HpCodeParams {
     /// Physical period `P` of the dot grid, pattern units (µm by convention). Must be > 0.
@@ -69,7 +70,7 @@ pub struct HpCodeParams {
     /// enter, hence [`HpCodeParams::apodize`]).
     pub window_size: Option<usize>,
     /// Multiply the window by the radial Hann window `(1 + cos(π·d/ρ))/2`, `ρ` = half the side
-    /// (METHOD.md §5.2.3 step 2). `None` (default): only when the window is larger than the
+    /// (docs/design.md#hp-window). `None` (default): only when the window is larger than the
     /// automatic one, i.e. reaches beyond the marker (without it, the background and clutter of
     /// e.g. a 512-px window on Image96 hide the marker's grid). Inside the marker the phase
     /// engine's refinement applies its own separable window, and the radial Hann on top of it
@@ -103,7 +104,7 @@ pub enum PoseFormula {
     /// the centre's phase.
     #[default]
     Symmetric,
-    /// The original's formulas (METHOD.md §5.2.3 steps 1, 4–5): window centred on the
+    /// The original's formulas (docs/design.md#hp-fine): window centred on the
     /// truncated coarse centre, `alpha` and pixel size from the
     /// engine's plane 1 (the lobe whose direction is in `[0, π/2)`, whichever marker axis it
     /// is), position `ps·Rz(−α)·(window centre) − P·c/2π`, here with the whole-period shift
@@ -127,11 +128,11 @@ impl HpCodeParams {
         }
     }
 
-    /// Settings that reproduce the original's numbers (METHOD.md §5.2.3, §8): window of
-    /// `window_size` pixels, band-pass phase planes without refinement (§4.3–4.6, ring
-    /// band-pass from 20 bins) and [`PoseFormula::Original`]. Its result moves by up to
-    /// ~3e-3 rad with the window size on real images (Image96: 320 to 640 px), about 10 times
-    /// more than the default's.
+    /// Settings that reproduce the original's numbers (docs/design.md#hp-fine): window of
+    /// `window_size` pixels, band-pass phase planes without refinement
+    /// (docs/design.md#phase-bandpass, ring band-pass from 20 bins) and [`PoseFormula::Original`].
+    /// Its result moves by up to ~3e-3 rad with the window size on real images (Image96: 320 to 640
+    /// px), about 10 times more than the default's.
     pub fn original(period: f64, half_periods: usize, window_size: usize) -> Self {
         let mut p = HpCodeParams::new(period, half_periods);
         p.window_size = Some(window_size);
@@ -189,12 +190,12 @@ impl HpCodeParams {
 #[derive(Clone, Debug)]
 pub struct HpCodeMarker {
     /// Decoded ID: bit `k` is 1 when the top-row dot `k` places from the top-right finder is
-    /// missing (METHOD.md §1.4).
+    /// missing (docs/design.md#hp-id-encoding).
     pub id: u64,
     /// Measured marker width in half-period cells `W` (odd; the setting is only a prior).
     pub half_periods: usize,
-    /// Pose of the marker, METHOD.md §6. Pattern origin: the marker centre, i.e. the centre
-    /// dot (`W ≡ 1 mod 4`) or the gap between the four central dots (`W ≡ 3 mod 4`).
+    /// Pose of the marker (docs/design.md#frames). Pattern origin: the marker centre, i.e. the
+    /// centre dot (`W ≡ 1 mod 4`) or the gap between the four central dots (`W ≡ 3 mod 4`).
     pub pose: Pose,
     /// Image position `(col, row)` of the marker centre, pixels.
     pub origin_px: Vector2<f64>,
@@ -215,6 +216,35 @@ pub struct HpCodeMarker {
 
 /// Detects HP code markers. Keeps the phase engine's FFT plans and the finder scanner's buffers
 /// between frames.
+///
+/// # Example
+///
+/// ```
+/// use vernier::hpcode::{HpCodeDetector, HpCodeParams};
+/// use vernier::layout::HpCodeLayout;
+/// use vernier::phase::wrap_to_pi;
+/// use vernier::render::{render, RenderOptions};
+/// use vernier::Pose;
+///
+/// # fn main() -> vernier::Result<()> {
+/// // A 33-cell HP code (17 × 17 dots, 9 ID bits) of 10 µm period carrying ID 361, seen at
+/// // 1.25 µm per pixel (a 132-px marker) turned by 2.5 rad.
+/// let layout = HpCodeLayout::from_half_periods(10.0, 33)?.with_id(361)?;
+/// let truth = Pose::planar(6.0, -4.0, 2.5, 1.25);
+/// let options = RenderOptions { blur_sigma: 0.5, ..RenderOptions::new(256, 256) };
+/// let image = render(&layout, &truth, &options)?;
+///
+/// let mut detector = HpCodeDetector::new(HpCodeParams::new(10.0, 33))?;
+/// let markers = detector.detect(&image)?;
+/// assert_eq!(markers.len(), 1);
+/// let (marker, tolerance) = (&markers[0], 0.01 * truth.pixel_size);
+/// assert_eq!(marker.id, 361);
+/// assert!((marker.pose.x - truth.x).abs() < tolerance);
+/// assert!((marker.pose.y - truth.y).abs() < tolerance);
+/// assert!(wrap_to_pi(marker.pose.alpha - truth.alpha).abs() < 1e-4);
+/// # Ok(())
+/// # }
+/// ```
 pub struct HpCodeDetector {
     params: HpCodeParams,
     engine: PhaseEngine,

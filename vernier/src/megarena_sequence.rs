@@ -1,4 +1,4 @@
-//! Megarena bit sequences (METHOD.md §1.3.1), bit-exact with the original library.
+//! Megarena bit sequences (docs/design.md#megarena-sequences), bit-exact with the original library.
 //!
 //! A Fibonacci linear feedback shift register of depth `d ∈ 4..=12` produces a maximal-length
 //! sequence `b` (period `2^d − 1`). From it:
@@ -17,7 +17,7 @@ pub const MIN_CODE_DEPTH: u32 = 4;
 pub const MAX_CODE_DEPTH: u32 = 12;
 
 /// Tap positions (bits of the shift-register state, bit 0 = most recent output) for each depth
-/// `MIN_CODE_DEPTH..=MAX_CODE_DEPTH`, in that order (METHOD.md §1.3.1 table).
+/// `MIN_CODE_DEPTH..=MAX_CODE_DEPTH`, in that order (docs/design.md#megarena-sequences table).
 const TAPS: [&[u32]; 9] = [
     &[0, 3],        // d = 4:  x⁴ + x³ + 1
     &[1, 4],        // d = 5:  x⁵ + x³ + 1
@@ -95,9 +95,9 @@ pub fn line_sequence_length(depth: u32) -> Result<usize> {
     Ok(3 * ((1usize << depth) + depth as usize - 2))
 }
 
-/// Code depth from a line-sequence length: `round(log2(len div 3))` (METHOD.md §1.3.1).
-/// Exact for generated sequences; for user-supplied ones it is the depth the decoder assumes.
-/// Errors when `len < 3` (no depth defined).
+/// Code depth from a line-sequence length: `round(log2(len div 3))`
+/// (docs/design.md#megarena-sequences). Exact for generated sequences; for user-supplied ones it is
+/// the depth the decoder assumes. Errors when `len < 3` (no depth defined).
 pub fn code_depth_from_length(len: usize) -> Result<u32> {
     let windows = len / 3;
     if windows == 0 {

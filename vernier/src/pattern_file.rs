@@ -1,4 +1,5 @@
-//! JSON pattern-description files (METHOD.md §1.8): reading any layout class, writing it back.
+//! JSON pattern-description files (docs/design.md#pattern-file): reading any layout class, writing
+//! it back.
 //!
 //! A file is a JSON object whose **first member name is the class name** and whose value holds
 //! the fields; later members are ignored. Reading is more tolerant than the original: doubles

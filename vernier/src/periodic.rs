@@ -1,5 +1,5 @@
-//! Detector of plain periodic dot grids (METHOD.md §4.8): the pose modulo one period and the
-//! grid's 90° symmetry.
+//! Detector of plain periodic dot grids (docs/design.md#periodic): the pose modulo one period and
+//! the grid's 90° symmetry.
 
 use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
@@ -43,6 +43,31 @@ pub struct PeriodicDetection {
 }
 
 /// Measures the pose of a periodic grid filling the image. Keeps FFT plans between calls.
+///
+/// # Example
+///
+/// ```
+/// use vernier::layout::PeriodicLayout;
+/// use vernier::render::{render, RenderOptions};
+/// use vernier::{PeriodicDetector, PeriodicParams, Pose};
+///
+/// # fn main() -> vernier::Result<()> {
+/// // 10 µm period, 1.25 µm per pixel; the truth lies inside the reported range
+/// // (x, y in [−P/2, P/2), alpha in [0, π/2)), so it comes back as is.
+/// let layout = PeriodicLayout::new(10.0, 41, 41)?;
+/// let truth = Pose::planar(2.5, -1.0, 0.3, 1.25);
+/// let options = RenderOptions { blur_sigma: 0.5, ..RenderOptions::new(128, 128) };
+/// let image = render(&layout, &truth, &options)?;
+///
+/// let mut detector = PeriodicDetector::new(PeriodicParams::new(10.0))?;
+/// let pose = detector.detect(&image)?.pose;
+/// let tolerance = 0.01 * truth.pixel_size; // 1/100 px, in µm
+/// assert!((pose.x - truth.x).abs() < tolerance && (pose.y - truth.y).abs() < tolerance);
+/// assert!((pose.alpha - truth.alpha).abs() < 1e-4);
+/// assert!((pose.pixel_size / truth.pixel_size - 1.0).abs() < 1e-4);
+/// # Ok(())
+/// # }
+/// ```
 pub struct PeriodicDetector {
     params: PeriodicParams,
     engine: PhaseEngine,
@@ -84,7 +109,7 @@ impl PeriodicDetector {
     }
 }
 
-/// METHOD.md §4.8: pose from the two planes with zero period shifts.
+/// Pose from the two planes with zero period shifts (docs/design.md#periodic).
 pub fn periodic_pose(analysis: &PhaseAnalysis, period: f64) -> Pose {
     let [p1, p2] = analysis.planes;
     Pose::planar(

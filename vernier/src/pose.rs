@@ -1,4 +1,4 @@
-//! Poses and frames (METHOD.md §6).
+//! Poses and frames (docs/design.md#frames).
 //!
 //! * **Camera frame**: origin at the image centre pixel `(C div 2, R div 2)`, `x_c` right
 //!   (columns), `y_c` down (rows), `z_c` into the scene; lengths in pattern units (µm by
@@ -13,7 +13,7 @@
 
 use nalgebra::{Isometry3, Point2, Rotation3, Translation3, UnitQuaternion, Vector2, Vector3};
 
-/// Pose of a pattern in the camera frame (METHOD.md §6).
+/// Pose of a pattern in the camera frame (docs/design.md#frames).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Pose {
     /// Translation along `x_p`, pattern units (see module docs for its meaning).

@@ -1,4 +1,5 @@
-//! Synthetic images of any layout at a known pose: the ground truth of the tests (METHOD.md §2).
+//! Synthetic images of any layout at a known pose: the ground truth of the tests
+//! (docs/design.md#rendering).
 //!
 //! Orthographic camera: pixel `(col, row)` is centred on image coordinates `(col, row)` and the
 //! camera frame origin is the centre pixel `(C div 2, R div 2)` (as the detectors assume).

@@ -1,5 +1,5 @@
-//! Square windows ("snapshots") around a marker, with radial apodisation (METHOD.md §5.2.3,
-//! §5.3.2). Shared by the HP code and stamp detectors.
+//! Square windows ("snapshots") around a marker, with radial apodisation (docs/design.md#hp-window,
+//! docs/design.md#stamp-window). Shared by the HP code and stamp detectors.
 
 use crate::error::Result;
 use crate::grey_image::GreyImage;

@@ -1,4 +1,4 @@
-//! Layout export (METHOD.md §3) checked with independent readers: GDSII and OASIS with
+//! Layout export (docs/design.md#export) checked with independent readers: GDSII and OASIS with
 //! PyPI `gdstk` (installed in `.venv/` by `scripts/setup_test_tools.sh`), SVG rendered by
 //! `resvg` and compared with the PNG export, PNG against the original's layout bitmaps.
 
@@ -143,7 +143,8 @@ fn sample_patterns() -> Vec<(&'static str, Pattern)> {
         .with_region_of_interest(Rect::new(140.0, 70.0, 700.0, 560.0))
         .unwrap()
         .with_metadata(metadata_with_margins(margins));
-    // Fewer than 100 rectangles: the original divided by zero here (METHOD.md §9.18).
+    // Fewer than 100 rectangles: the original divided by zero here
+    // (docs/design.md#defect-export-progress).
     let custom = CustomLayout::new(vec![
         CustomDot::new(0.0, 0.0, 4.0, 2.0, 1.0),
         CustomDot::new(10.0, 3.3333, 2.0, 2.0, 1.0),
@@ -217,7 +218,7 @@ fn margins_shift_the_dots() {
 
 #[test]
 fn hp_code_export_has_complete_finders_and_id() {
-    // METHOD.md §9.19: the original's GDS lacked the top-left finder's corner cell.
+    // docs/design.md#defect-hp-layout: the original's GDS lacked the top-left finder's corner cell.
     let hp = HpCodeLayout::new(10.0, 17).unwrap().with_id(3).unwrap();
     let pattern = Pattern::from(hp);
     let dots = expected_dots(&pattern);
@@ -379,7 +380,7 @@ fn svg_has_physical_size_and_metadata() {
 
 #[test]
 fn png_reproduces_the_original_layout_bitmaps() {
-    // The original's PNG exports of HP codes with ID 0 (METHOD.md §3.1).
+    // The original's PNG exports of HP codes with ID 0 (docs/design.md#export-png).
     for (file, size) in [("HPCode33x33.png", 17), ("HPCode37x37.png", 19)] {
         let original = image::open(data_dir().join("layouts").join(file))
             .unwrap()
@@ -409,9 +410,9 @@ fn png_sizes_follow_the_spec() {
     let periodic = Pattern::from_file(data_dir().join("patterns/periodicPattern.json")).unwrap();
     // 37 rows × 31 columns → (2·37 − 1) × (2·31 − 1).
     assert_eq!(layout_image(&periodic).unwrap().dimensions(), (61, 73));
-    // Megarena, P = 14, ROI 3000 × 2000: dots 0..214 × 0..142 (the ROI rule of §1.3.2),
-    // two pixels per dot. (The original drew 285 rows: one more pixel row, half of the dot
-    // row 142 that its own rectangle export leaves out.)
+    // Megarena, P = 14, ROI 3000 × 2000: dots 0..214 × 0..142 (the ROI rule of
+    // docs/design.md#layout-megarena), two pixels per dot. (The original drew 285 rows: one more
+    // pixel row, half of the dot row 142 that its own rectangle export leaves out.)
     let megarena = Pattern::from_file(data_dir().join("patterns/megarenaPattern.json")).unwrap();
     assert_eq!(layout_image(&megarena).unwrap().dimensions(), (428, 284));
     // Bytes are a real PNG.

@@ -307,7 +307,7 @@ fn dark_dot_image_polarity_from_the_finders() {
         .is_empty());
     // The original (S = 256, dark dots not inverted: its phase origin is the bright gap, here
     // the true marker centre): id 1 = (106.313, 325.622, 1.57991, 2.39519). For id 0 its peak
-    // search took the mirror of a lobe lying on the ky = 0 row (METHOD.md §4.3 step 7), so its
+    // search took the mirror of a lobe lying on the ky = 0 row (docs/design.md#phase-lobes), so its
     // "plane 1" is the other axis; with that axis we get its numbers too (checked by hand:
     // 325.317, 131.723, 0.00968, 2.40948).
     let mut original = HpCodeDetector::new(HpCodeParams::original(20.0, 33, 256)).unwrap();

@@ -1,4 +1,5 @@
-//! Layout classes and JSON pattern files against the shipped data (METHOD.md §1, §8.2).
+//! Layout classes and JSON pattern files against the shipped data (docs/design.md#layouts,
+//! docs/design.md#pattern-file) and the original's reference values.
 
 mod common;
 
@@ -93,8 +94,8 @@ fn rect_cells(layout: &dyn Layout, rows: usize, cols: usize) -> Vec<Vec<bool>> {
     cells
 }
 
-/// Reads the ID of an HP marker from its `W × W` half-period cells (METHOD.md §1.4): bit k
-/// is the top-row dot at dot column n − 5 − k, a missing dot means 1.
+/// Reads the ID of an HP marker from its `W × W` half-period cells (docs/design.md#hp-id-encoding):
+/// bit k is the top-row dot at dot column n − 5 − k, a missing dot means 1.
 fn read_hp_id(cells: &[Vec<bool>]) -> u64 {
     let n = cells.len().div_ceil(2);
     (0..n - 8)
@@ -279,7 +280,7 @@ fn round_trips_of_extensions_and_metadata() {
 
 #[test]
 fn custom_layout_from_hp_csv_round_trips() {
-    // The §3.4 CSV of an HP code (layout coordinates, header line first).
+    // The CSV (docs/design.md#layout-custom) of an HP code (layout coordinates, header line first).
     let hp = HpCodeLayout::new(10.0, 17).unwrap();
     let (ox, oy) = hp.origin();
     let mut csv = String::from("x;y;width;height:intensity\n");

@@ -403,7 +403,7 @@ fn real_12_bit_9_um_image_matches_the_original() {
     );
     assert!(found.decode_confidence > 0.95);
     // The photographic negative, declared as dark dots, gives the same pose (the original
-    // decodes it to a wrong pose, METHOD.md §9.1).
+    // decodes it to a wrong pose, docs/design.md#defect-polarity).
     let mut params = MegarenaParams::new(9.0, 12).unwrap();
     params.polarity = Polarity::DarkDots;
     let negative = MegarenaDetector::new(params)

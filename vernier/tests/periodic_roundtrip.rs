@@ -176,8 +176,8 @@ fn one_percent_noise_on_12_bit_images() {
 
 #[test]
 fn band_pass_alone_is_the_original_method() {
-    // Without refinement the planes are those of METHOD.md §4.4–4.6 (Gaussian band-pass, plane
-    // fit), whose harmonic leakage costs accuracy on raised-cosine renders.
+    // Without refinement the planes are those of docs/design.md#phase-bandpass (Gaussian band-pass,
+    // plane fit), whose harmonic leakage costs accuracy on raised-cosine renders.
     let plain = run(
         Imaging {
             sampling: Sampling::Point,
@@ -198,8 +198,9 @@ fn band_pass_alone_is_the_original_method() {
     );
 }
 
-/// The decimated band-pass evaluates the same band-limited phase field as the full-size
-/// inverse transform, sample for sample (METHOD.md §4.4 made cheap).
+/// The decimated band-pass evaluates the same band-limited phase field as the full-size inverse
+/// transform, sample for sample (the original's band-pass made cheap,
+/// docs/design.md#phase-bandpass).
 #[test]
 fn demodulated_band_pass_samples_the_full_size_phase_exactly() {
     // 144 px and 216 px sides: the 36-point decimated grid falls on every 4th / 6th pixel.

@@ -1,7 +1,7 @@
 //! Stamp and bitmap markers (issue 4 acceptance): synthetic stamps at random poses (identity,
 //! position, angle), the original's real stamp images and their rotations and flips, the
-//! period-shift fix of METHOD.md §9.12, duplicates, polarity, the full-image bitmap search and
-//! the unified detector settings.
+//! period-shift fix of docs/design.md#defect-stamp-shift, duplicates, polarity, the full-image
+//! bitmap search and the unified detector settings.
 
 mod common;
 
@@ -170,8 +170,8 @@ fn synthetic_stamps_are_identified_with_their_exact_pose() {
 
 #[test]
 fn window_off_centre_by_whole_periods_gives_the_same_pose() {
-    // METHOD.md §9.12: the original mis-signs the period shift when the window is centred
-    // one period or more away from the central dot; here the match states where the dot is.
+    // docs/design.md#defect-stamp-shift: the original mis-signs the period shift when the window is
+    // centred one period or more away from the central dot; here the match states where the dot is.
     let period = 10.0;
     let bitmaps = load_bitmaps(&STAMPS, period);
     let mut detector = StampDetector::new(StampParams::new(period, bitmaps.clone())).unwrap();
@@ -268,7 +268,7 @@ fn detect_real(
 
 #[test]
 fn real_stamps_match_the_original_at_15_5_um() {
-    // METHOD.md §8.2 reference (stamp3.png = stampPatternImage_15um.jpg, P = 15.5, bitmaps
+    // The original's reference result (stamp3.png = stampPatternImage_15um.jpg, P = 15.5, bitmaps
     // stampD + stampG): id 0 x = 405.162, y = 11.5679, α = 0.000129, ps = 0.969107;
     // id 1 x = −420.308, y = 11.796, α = 0.000426, ps = 0.969707.
     let image = open("stamp/stampPatternImage_15um.jpg");
@@ -672,7 +672,7 @@ fn an_unreadable_id_is_dropped_not_guessed() {
 #[test]
 fn full_image_bitmaps_are_identified_and_located() {
     // Bitmaps without a frame (an HP code layout, the FEMTO logo) are matched on the whole
-    // image (METHOD.md §5.4).
+    // image (docs/design.md#bitmap-full-image).
     let period = 8.0;
     let bitmaps = load_bitmaps(&["HPCode37x37", "femto117x45"], period);
     let mut detector = StampDetector::new(StampParams::new(period, bitmaps.clone())).unwrap();

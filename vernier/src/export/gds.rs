@@ -1,5 +1,5 @@
-//! GDSII stream writer (METHOD.md §3.3): regular dot arrays become AREFs of a one-rectangle
-//! cell, isolated rectangles plain BOUNDARY elements.
+//! GDSII stream writer (docs/design.md#export-gds-oasis): regular dot arrays become AREFs of a
+//! one-rectangle cell, isolated rectangles plain BOUNDARY elements.
 //!
 //! Units: user unit 1 µm, database unit 1 nm; y = −v (GDS is y up). Dots on layer 1,
 //! datatype 1; the descriptive label on layer 2, texttype 0 (TEXT elements).

@@ -2,9 +2,9 @@
 //! coordinates, and their grouping into regular arrays for the GDSII and OASIS writers.
 //!
 //! **Export coordinates** are layout coordinates shifted by the margins
-//! (`u' = u + left`, `v' = v + top`, METHOD.md §3), y down, pattern units. GDSII and OASIS
+//! (`u' = u + left`, `v' = v + top`, docs/design.md#export), y down, pattern units. GDSII and OASIS
 //! negate `v'` (y up) and write integers in database units (nm, with the pattern unit taken
-//! as µm, §3.3).
+//! as µm, docs/design.md#export-gds-oasis).
 
 use std::collections::HashMap;
 
@@ -35,14 +35,15 @@ pub struct ExportFrame {
 }
 
 impl ExportFrame {
-    /// The frame of `pattern` (METHOD.md §3, §1.3.2 for the Megarena region of interest).
+    /// The frame of `pattern` (docs/design.md#export; docs/design.md#layout-megarena for the
+    /// Megarena region of interest).
     pub fn of(pattern: &Pattern) -> Self {
         let layout = pattern.layout();
         let b = layout.bounds();
         let frame = match pattern {
             Pattern::Megarena(m) => {
                 // Dot-aligned cells of the region of interest, with the truncating rule of
-                // METHOD.md §1.3.2 (the tolerance absorbs rounding in (L·P)/P).
+                // docs/design.md#layout-megarena (the tolerance absorbs rounding in (L·P)/P).
                 let p = m.period();
                 let n = m.n_dots();
                 let range = |start: f64, length: f64| {
@@ -208,8 +209,8 @@ fn lattice_cell_limit(count: usize) -> usize {
     count.saturating_mul(16).saturating_add(1 << 16)
 }
 
-/// The rectangles of the frame grouped into regular arrays (METHOD.md §3.3: arrays instead of
-/// one polygon per dot).
+/// The rectangles of the frame grouped into regular arrays (docs/design.md#export-gds-oasis: arrays
+/// instead of one polygon per dot).
 ///
 /// Rectangles of equal size whose positions lie on a common integer lattice (in nm) are
 /// placed on an occupancy grid, which is covered exactly by arrays: for a stride `m` of 1–4

@@ -1,4 +1,4 @@
-//! Layout export for fabrication and documentation (METHOD.md §3): PNG, SVG, GDSII, OASIS.
+//! Layout export for fabrication and documentation (docs/design.md#export): PNG, SVG, GDSII, OASIS.
 //!
 //! Every format draws the rectangles of the pattern's **export frame** (the whole layout, or
 //! the dot cells of a Megarena's region of interest, [`ExportFrame`]) with the margins of
@@ -31,7 +31,7 @@ use crate::error::{Error, Result};
 use crate::layout::Layout;
 use crate::pattern_file::Pattern;
 
-/// Layer and datatype of the fabricated dots in GDSII and OASIS (METHOD.md §3.3).
+/// Layer and datatype of the fabricated dots in GDSII and OASIS (docs/design.md#export-gds-oasis).
 pub const DOT_LAYER: (i16, i16) = (1, 1);
 /// Layer and text type of the descriptive label in GDSII and OASIS.
 pub const LABEL_LAYER: (i16, i16) = (2, 0);
@@ -39,13 +39,13 @@ pub const LABEL_LAYER: (i16, i16) = (2, 0);
 /// An export file format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum ExportFormat {
-    /// 8-bit grey PNG, one pixel per half-period cell, white = dot (§3.1).
+    /// 8-bit grey PNG, one pixel per half-period cell, white = dot (docs/design.md#export-png).
     Png,
-    /// SVG, one black rectangle per dot, viewBox in pattern units (§3.2).
+    /// SVG, one black rectangle per dot, viewBox in pattern units (docs/design.md#export-svg).
     Svg,
-    /// GDSII stream (§3.3).
+    /// GDSII stream (docs/design.md#export-gds-oasis).
     Gds,
-    /// OASIS (§3.3).
+    /// OASIS (docs/design.md#export-gds-oasis).
     Oasis,
 }
 
@@ -251,7 +251,8 @@ fn with_drawing<T>(pattern: &Pattern, write: impl FnOnce(&Drawing) -> Result<T>)
     let layout: &dyn Layout = pattern.layout();
     let frame = ExportFrame::of(pattern);
     let arrays = dot_arrays(pattern, &frame)?;
-    // Label below the canvas, 8 × the first rectangle's height tall (METHOD.md §3.3).
+    // Label below the canvas, 8 × the first rectangle's height tall
+    // (docs/design.md#export-gds-oasis).
     let height = arrays
         .first()
         .map_or((layout.period() * DB_PER_UNIT) as i64, |a| a.first.height)

@@ -1,5 +1,5 @@
-//! OASIS writer (SEMI P39; METHOD.md §3.3): one cell of RECTANGLE records, regular dot
-//! arrays as RECTANGLEs with a grid repetition, a TEXT per label line, CRC-32 validation.
+//! OASIS writer (SEMI P39; docs/design.md#export-gds-oasis): one cell of RECTANGLE records, regular
+//! dot arrays as RECTANGLEs with a grid repetition, a TEXT per label line, CRC-32 validation.
 //!
 //! Units: 1000 database units per µm (1 nm grid), y = −v (OASIS is y up). Dots on layer 1,
 //! datatype 1; the label on text layer 2, texttype 0. Not compressed (no CBLOCK): with

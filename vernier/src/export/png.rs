@@ -1,4 +1,4 @@
-//! PNG export (METHOD.md §3.1): 8-bit grey, one pixel per half-period cell, white = dot.
+//! PNG export (docs/design.md#export-png): 8-bit grey, one pixel per half-period cell, white = dot.
 
 use image::GrayImage;
 

@@ -1,4 +1,4 @@
-//! SVG export (METHOD.md §3.2): one black `rect` per fabricated rectangle.
+//! SVG export (docs/design.md#export-svg): one black `rect` per fabricated rectangle.
 
 use std::fmt::Write as _;
 

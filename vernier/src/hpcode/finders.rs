@@ -1,4 +1,4 @@
-//! Finder-square detection (METHOD.md §5.2.1, redesigned: regions, not edges).
+//! Finder-square detection (docs/design.md#hp-finders, redesigned: regions, not edges).
 //!
 //! The original scans a Canny edge map, with thresholds tuned per image, for 1:1:3:1:1 runs.
 //! Here a finder is recognised by its **topology**: a solid centre inside a gap inside a ring,

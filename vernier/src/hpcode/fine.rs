@@ -1,12 +1,13 @@
-//! Fine geometry of one marker from the phase planes of its window (METHOD.md §5.2.3, redone).
+//! Fine geometry of one marker from the phase planes of its window (docs/design.md#hp-fine,
+//! redone).
 //!
 //! The original picks the quadrant from the angle of plane 1 and assumes the window centre lies
-//! within half a period of the centre dot (§9.7). Here each pattern axis takes the signed plane
-//! whose gradient is closest to the finder direction of that axis; the marker width is measured
-//! in whole periods between the finders; and the marker centre is the grid point of the right
-//! phase nearest to the coarse centre from the finders, found by rounding the phases there to
-//! whole periods — any window placement works as long as the finders locate the centre within
-//! half a period.
+//! within half a period of the centre dot (docs/design.md#defect-hp-grouping). Here each pattern
+//! axis takes the signed plane whose gradient is closest to the finder direction of that axis; the
+//! marker width is measured in whole periods between the finders; and the marker centre is the grid
+//! point of the right phase nearest to the coarse centre from the finders, found by rounding the
+//! phases there to whole periods — any window placement works as long as the finders locate the
+//! centre within half a period.
 
 use super::grouping::FinderTriple;
 use super::marker_id::DotGrid;

@@ -1,10 +1,10 @@
-//! Grouping finder squares into HP code markers (METHOD.md §5.2.2, made robust).
+//! Grouping finder squares into HP code markers (docs/design.md#hp-grouping, made robust).
 //!
-//! The original groups greedily by distance and only uses `3·⌊n/3⌋` finders, so one spurious
-//! finder breaks every marker (§9.7). Here every triple of finders of the same polarity is
-//! checked against the marker geometry — a right angle at the corner finder, two equal legs,
-//! legs `W − 7` modules long, finders of equal size — and the best-fitting triples are kept
-//! greedily without sharing a finder. Finders left over are ignored.
+//! The original groups greedily by distance and only uses `3·⌊n/3⌋` finders, so one spurious finder
+//! breaks every marker (docs/design.md#defect-hp-grouping). Here every triple of finders of the
+//! same polarity is checked against the marker geometry — a right angle at the corner finder, two
+//! equal legs, legs `W − 7` modules long, finders of equal size — and the best-fitting triples are
+//! kept greedily without sharing a finder. Finders left over are ignored.
 //!
 //! The marker width `W` is a prior, not a constraint: legs of `W' − 7` modules are accepted for
 //! any `W'` within [`WIDTH_SLACK`] cells of the nominal `W` (the original ignores `W`, and the

@@ -1,12 +1,13 @@
-//! Reading the marker ID from the measured dot grid (METHOD.md §1.4, §5.2.3 step 6, redone).
+//! Reading the marker ID from the measured dot grid (docs/design.md#layout-hpcode,
+//! docs/design.md#hp-id, redone).
 //!
 //! The original samples a Bresenham line between two finders and binarises it with Otsu, which
-//! throws on short lines (§9.7, Image134). Here the fine phase planes give the exact image
-//! position of every dot, so each ID dot is sampled where it must be and compared with a
-//! threshold halfway between the dots of the next row (always present) and the empty cells in
-//! between (always background). The left dot column, which carries no ID, is read the same way:
-//! in a marker seen from the front it is complete; a mirrored marker (seen from its back, e.g.
-//! a flipped image) shows its ID there instead.
+//! throws on short lines (docs/design.md#defect-hp-grouping, Image134). Here the fine phase planes
+//! give the exact image position of every dot, so each ID dot is sampled where it must be and
+//! compared with a threshold halfway between the dots of the next row (always present) and the
+//! empty cells in between (always background). The left dot column, which carries no ID, is read
+//! the same way: in a marker seen from the front it is complete; a mirrored marker (seen from its
+//! back, e.g. a flipped image) shows its ID there instead.
 
 use crate::grey_image::{GreyImage, Polarity};
 use nalgebra::Vector2;

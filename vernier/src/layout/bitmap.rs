@@ -1,5 +1,6 @@
-//! Bitmap layouts: a 0/1 image on the half-period grid ([`BitmapLayout`], METHOD.md §1.5;
-//! stamps are bitmaps) or one pixel per dot ([`FingerprintLayout`], §1.6).
+//! Bitmap layouts: a 0/1 image on the half-period grid ([`BitmapLayout`],
+//! docs/design.md#layout-bitmap; stamps are bitmaps) or one pixel per dot ([`FingerprintLayout`],
+//! docs/design.md#layout-fingerprint).
 
 use std::path::Path;
 
@@ -62,9 +63,10 @@ fn cells_to_rows(n_cols: usize, cells: &[bool]) -> Vec<Vec<u8>> {
         .collect()
 }
 
-/// Binarises an image as METHOD.md §1.5 says: 8-bit grey (colour converted to luma, alpha
-/// ignored, 16-bit scaled down), min-max normalised to [0, 1], set iff > 0.5 (white = dot).
-/// Returns `(n_rows, n_cols, cells)` row-major. Errors on an empty or uniform image.
+/// Binarises an image by the bitmap rule (docs/design.md#layout-bitmap): 8-bit grey (colour
+/// converted to luma, alpha ignored, 16-bit scaled down), min-max normalised to [0, 1], set iff >
+/// 0.5 (white = dot). Returns `(n_rows, n_cols, cells)` row-major. Errors on an empty or uniform
+/// image.
 pub(crate) fn binarize_image(image: &image::DynamicImage) -> Result<(usize, usize, Vec<bool>)> {
     let grey = image.to_luma8();
     let (n_cols, n_rows) = (grey.width() as usize, grey.height() as usize);
@@ -99,8 +101,8 @@ pub(crate) fn read_image(path: &Path) -> Result<image::DynamicImage> {
         .map_err(|e| read_error(e.to_string()))
 }
 
-/// Arbitrary binary image on the half-period grid: `n_rows × n_cols` cells of side `P/2`
-/// (both ≡ 1 mod 4), cell set = fabricated square (METHOD.md §1.5). Stamp markers are bitmaps.
+/// Arbitrary binary image on the half-period grid: `n_rows × n_cols` cells of side `P/2` (both ≡ 1
+/// mod 4), cell set = fabricated square (docs/design.md#layout-bitmap). Stamp markers are bitmaps.
 ///
 /// The pattern origin is the centre of the central cell `((n_rows−1)/2, (n_cols−1)/2)`, a dot
 /// position; cell `(row, col)` spans layout `[col·P/2, (col+1)·P/2) × [row·P/2, (row+1)·P/2)`.
@@ -257,8 +259,9 @@ impl Layout for BitmapLayout {
     }
 }
 
-/// Binary image where **each pixel is one dot** of a period-`P` grid (METHOD.md §1.6):
-/// `n_rows × n_cols` dots (both odd), dot side `P/2`, set pixel = dot present.
+/// Binary image where **each pixel is one dot** of a period-`P` grid
+/// (docs/design.md#layout-fingerprint): `n_rows × n_cols` dots (both odd), dot side `P/2`, set
+/// pixel = dot present.
 ///
 /// Geometry as [`super::PeriodicLayout`]: pattern origin at the centre of the central dot,
 /// dot `(r, c)` centred at `((c − (n_cols−1)/2)·P, (r − (n_rows−1)/2)·P)`.

@@ -1,4 +1,4 @@
-//! Free list of rectangles, not periodic (METHOD.md §1.7), with the CSV reader (§3.4).
+//! Free list of rectangles, not periodic (docs/design.md#layout-custom), with its CSV reader.
 
 use std::path::Path;
 
@@ -12,7 +12,7 @@ use crate::error::{Error, Result};
 pub struct CustomDot {
     /// Rectangle, pattern coordinates.
     pub rect: Rect,
-    /// Stored intensity (the CSV writer of §3.4 writes 1).
+    /// Stored intensity (the original's CSV writer writes 1).
     pub intensity: f64,
 }
 
@@ -27,7 +27,7 @@ impl CustomDot {
 }
 
 /// Free list of rectangles in pattern coordinates, pattern origin = layout origin = `(0, 0)`
-/// when all rectangles have `x, y ≥ 0` (METHOD.md §1.7).
+/// when all rectangles have `x, y ≥ 0` (docs/design.md#layout-custom).
 ///
 /// The bounding box spans `[min(0, min x), max(x + w)] × [min(0, min y), max(y + h)]`.
 /// The layout is not periodic: [`Layout::period`] returns 0.
@@ -88,8 +88,8 @@ impl CustomLayout {
         })
     }
 
-    /// Layout from CSV text in the §3.4 format: a header line (skipped), then one rectangle
-    /// per line `x;y;width;height;intensity`. Blank lines are ignored.
+    /// Layout from CSV text (docs/design.md#layout-custom): a header line (skipped), then one
+    /// rectangle per line `x;y;width;height;intensity`. Blank lines are ignored.
     pub fn from_csv_str(text: &str) -> Result<Self> {
         let mut dots = Vec::new();
         for (index, line) in text.lines().enumerate().skip(1) {

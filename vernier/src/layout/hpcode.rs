@@ -1,5 +1,5 @@
 //! HP code: QR-like marker made of a periodic dot grid, three finder squares and an ID
-//! (METHOD.md §1.4).
+//! (docs/design.md#layout-hpcode).
 
 use super::bitmap::BitmapLayout;
 use super::periodic::visit_grid_dots;
@@ -190,7 +190,7 @@ impl Layout for HpCodeLayout {
             return 0.0; // also rejects NaN
         }
         let p = self.period;
-        // Half-period cell under the point (METHOD.md §1.4); in [0, W] here.
+        // Half-period cell under the point (docs/design.md#layout-hpcode); in [0, W] here.
         let cell = |v: f64| ((v + half_width - p / 4.0) / (p / 2.0)).round().max(0.0) as usize;
         if self.finder_cell(cell(y), cell(x)) == Some(true) {
             return 1.0;

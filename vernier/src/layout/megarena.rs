@@ -1,4 +1,4 @@
-//! Megarena absolute 2-D encoded dot grid (METHOD.md §1.3.2).
+//! Megarena absolute 2-D encoded dot grid (docs/design.md#layout-megarena).
 
 use super::periodic::visit_grid_dots;
 use super::{raised_cosine, Layout, Metadata, Rect};
@@ -6,7 +6,7 @@ use crate::error::{Error, Result};
 use crate::megarena_sequence::LineSequence;
 
 /// Square `L × L` dot grid whose rows and columns are switched on/off by a line sequence `s`
-/// (METHOD.md §1.3).
+/// (docs/design.md#layout-megarena).
 ///
 /// Dot `(r, c)` exists iff `s[r] = 1`, `s[c] = 1` and not (`r ≡ 0` and `c ≡ 0 (mod 3)`).
 /// The **pattern origin is the centre of dot (0, 0)**: dot `(r, c)` is centred at pattern
@@ -44,8 +44,8 @@ impl MegarenaLayout {
                 format!("must be a positive number, got {period}"),
             ));
         }
-        // `L·P` (not the width `L·P − P/2`): the truncating ROI rule of METHOD.md §1.3.2 then
-        // keeps the last row and column.
+        // `L·P` (not the width `L·P − P/2`): the truncating ROI rule
+        // (docs/design.md#layout-megarena) then keeps the last row and column.
         let side = period * sequence.len() as f64;
         Ok(MegarenaLayout {
             period,
@@ -123,7 +123,7 @@ impl MegarenaLayout {
     }
 
     /// Dot index range `[first, end)` of the region of interest along one axis
-    /// (`start`, `length` in layout coordinates), as in METHOD.md §1.3.2.
+    /// (`start`, `length` in layout coordinates), as in docs/design.md#layout-megarena.
     fn roi_range(&self, start: f64, length: f64) -> (usize, usize) {
         let n = self.n_dots();
         // Saturating float→int casts: negative → 0, huge → usize::MAX, then clamped to n.

@@ -1,4 +1,4 @@
-//! Marker layouts: where the fabricated dots are (METHOD.md §1).
+//! Marker layouts: where the fabricated dots are (docs/design.md#layouts).
 //!
 //! Two frames are used (both y down, as in the layout's PNG/SVG):
 //! * **layout coordinates** `(u, v)`: origin at the top-left corner of the bounding box;
@@ -78,7 +78,7 @@ pub struct Margins {
     pub bottom: f64,
 }
 
-/// Descriptive fields shared by all layouts (METHOD.md §1.1, §1.8).
+/// Descriptive fields shared by all layouts (docs/design.md#layouts, docs/design.md#pattern-file).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Metadata {
     /// Free text.
@@ -108,7 +108,7 @@ pub trait Layout: Send + Sync {
     /// Bounding box in **pattern coordinates**: `(-origin_x, -origin_y, width, height)`.
     fn bounds(&self) -> Rect;
 
-    /// Analytic intensity `I(x, y) ∈ [0, 1]` of METHOD.md §1 at pattern point `(x, y)`
+    /// Analytic intensity `I(x, y) ∈ [0, 1]` (docs/design.md#layouts) at pattern point `(x, y)`
     /// (bright dots = 1, background = 0). Used by the point-sampled renderer and PNG export.
     fn intensity(&self, x: f64, y: f64) -> f64;
 
@@ -134,7 +134,7 @@ pub trait Layout: Send + Sync {
     }
 }
 
-/// The separable raised-cosine dot profile of METHOD.md §1.1:
+/// The separable raised-cosine dot profile (docs/design.md#layouts):
 /// `(1 + cos(2πx/P))(1 + cos(2πy/P))/4`, 1 at dot centres (multiples of `period`).
 pub fn raised_cosine(x: f64, y: f64, period: f64) -> f64 {
     let k = std::f64::consts::TAU / period;

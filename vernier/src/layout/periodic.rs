@@ -1,4 +1,4 @@
-//! Plain periodic dot grid (METHOD.md §1.2).
+//! Plain periodic dot grid (docs/design.md#layout-periodic).
 
 use super::{raised_cosine, Layout, Metadata, Rect};
 use crate::error::{Error, Result};

@@ -1,4 +1,4 @@
-//! Reading the coding lines and locating them in the sequence (METHOD.md §5.1.4–5.1.6,
+//! Reading the coding lines and locating them in the sequence (docs/design.md#megarena-decoding,
 //! redesigned for robustness and speed).
 //!
 //! **Reading.** Every visible coding line carries one bit (`s[3j+1] = B[j]`): when the bit is 1

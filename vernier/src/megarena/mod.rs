@@ -1,5 +1,6 @@
-//! Megarena absolute encoded grids (METHOD.md §1.3, §5.1): absolute position of the image
-//! centre over the whole pattern, full-turn orientation, and the out-of-plane pose (§4.9).
+//! Megarena absolute encoded grids (docs/design.md#megarena): absolute position of the image centre
+//! over the whole pattern, full-turn orientation, and the out-of-plane pose
+//! (docs/design.md#pose-3d).
 //!
 //! Pipeline (one way, image → planes → lattice → code → pose):
 //! 1. the phase engine measures the two phase planes (sub-pixel lattice, modulo one period);
@@ -116,7 +117,7 @@ pub struct MegarenaDetection {
 }
 
 impl MegarenaDetection {
-    /// Out-of-plane pose (METHOD.md §4.9): the two orthographic solutions and the one the
+    /// Out-of-plane pose (docs/design.md#pose-3d): the two orthographic solutions and the one the
     /// perspective cue of `image` (the analysed image, same polarity as given to `detect`)
     /// favours. `focal_px`: focal length in pixels for `z = pixel_size·focal`, `None` for
     /// `z = 0`. See [`pose3d`].
@@ -131,6 +132,34 @@ impl MegarenaDetection {
 
 /// Measures the absolute pose of a Megarena pattern filling the image. Keeps FFT plans, the
 /// window table and the thumbnail buffers between calls.
+///
+/// # Example
+///
+/// ```
+/// use vernier::layout::MegarenaLayout;
+/// use vernier::megarena::{MegarenaDetector, MegarenaParams};
+/// use vernier::phase::wrap_to_pi;
+/// use vernier::render::{render, RenderOptions};
+/// use vernier::Pose;
+///
+/// # fn main() -> vernier::Result<()> {
+/// // A 6-bit Megarena (204 × 204 dots) of 10 µm period at 1.25 µm per pixel. The image
+/// // centre sees pattern point (812.5, 655) µm, i.e. near dot column 81, row 65.
+/// let layout = MegarenaLayout::new(10.0, 6)?;
+/// let truth = Pose::planar(-812.5, -655.0, 2.0, 1.25);
+/// let options = RenderOptions { blur_sigma: 0.5, ..RenderOptions::new(256, 256) };
+/// let image = render(&layout, &truth, &options)?;
+///
+/// let mut detector = MegarenaDetector::new(MegarenaParams::new(10.0, 6)?)?;
+/// let found = detector.detect(&image)?;
+/// let tolerance = 0.01 * truth.pixel_size; // absolute position to 1/100 px
+/// assert!((found.pose.x - truth.x).abs() < tolerance);
+/// assert!((found.pose.y - truth.y).abs() < tolerance);
+/// assert!(wrap_to_pi(found.pose.alpha - truth.alpha).abs() < 1e-4); // full turn
+/// assert_eq!(found.decode_confidence, 1.0); // every coding bit read agrees
+/// # Ok(())
+/// # }
+/// ```
 pub struct MegarenaDetector {
     params: MegarenaParams,
     index: WindowIndex,
@@ -248,8 +277,8 @@ impl MegarenaDetector {
     }
 }
 
-/// METHOD.md §5.1.6: planar pose from the absolute planes, `x = −P·c_x/2π`, `y = −P·c_y/2π`,
-/// `alpha` = direction of the x phase gradient, pixel size `P·|∇φ_x|/2π`.
+/// Planar pose from the absolute planes (docs/design.md#megarena-pose): `x = −P·c_x/2π`,
+/// `y = −P·c_y/2π`, `alpha` = direction of the x phase gradient, pixel size `P·|∇φ_x|/2π`.
 pub fn pose_from_planes(planes: &PatternPlanes, period: f64) -> Pose {
     let [px, py] = planes;
     Pose::planar(

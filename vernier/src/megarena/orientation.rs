@@ -1,4 +1,4 @@
-//! Orientation of the thumbnail axes from the 3×3 rule (METHOD.md §5.1.3).
+//! Orientation of the thumbnail axes from the 3×3 rule (docs/design.md#megarena-orientation).
 //!
 //! In the layout, dot rows and columns with index ≡ 1 (mod 3) are the coding lines and dot
 //! `(r, c)` with `r ≡ c ≡ 0 (mod 3)` is always missing. Averaging the node levels by residue
@@ -79,7 +79,8 @@ pub fn find_orientation(thumb: &Thumbnail) -> Result<Orientation> {
             };
             let (o1, o2) = (others(c1), others(c2));
             for quadrant in 0..4 {
-                // METHOD.md table: quadrant 0 → (r⁺, r⁺), 1 → (r⁺, r⁻), 2 → (r⁻, r⁺), 3 → (r⁻, r⁻).
+                // The original's quadrant numbering: quadrant 0 → (r⁺, r⁺), 1 → (r⁺, r⁻),
+                // 2 → (r⁻, r⁺), 3 → (r⁻, r⁻).
                 let m1 = if quadrant < 2 { o1[1] } else { o1[0] };
                 let m2 = if quadrant % 2 == 0 { o2[1] } else { o2[0] };
                 let mut present = 0.0;

@@ -1,5 +1,5 @@
-//! Out-of-plane pose from the two absolute phase planes (METHOD.md §4.9), orthographic model,
-//! and a perspective cue choosing between the mirror solutions.
+//! Out-of-plane pose from the two absolute phase planes (docs/design.md#pose-3d), orthographic
+//! model, and a perspective cue choosing between the mirror solutions.
 //!
 //! **Orthographic solutions.** The planes give the affine map pixel ← pattern,
 //! `M = (P/2π)⁻¹·[∇φ_x; ∇φ_y]⁻¹`, which must equal `R₂ₓ₂/s` (the top-left 2×2 of
@@ -7,15 +7,16 @@
 //! `T = [[cos β, sin β·sin γ], [0, cos γ]]/s` gives `α` directly, and `1/s² = k²` from the
 //! orthonormality of the rotation: `k⁴ − (t₁₁² + t₁₂² + t₂₂²)·k² + t₁₁²·t₂₂² = 0` (larger root),
 //! then `β₀ = acos(t₁₁/k)`, `γ₀ = acos(t₂₂/k)` (arguments clamped to `[0, 1]`: the original's
-//! unguarded `acos` returned NaN, METHOD.md §9.9). The original lists four sign combinations;
-//! the sign of the shear `t₁₂ = k·sin β·sin γ` rules out two of them, leaving `(β₀, ±γ₀)` and
-//! its mirror `(−β₀, ∓γ₀)`, which no orthographic image can tell apart (Necker ambiguity).
+//! unguarded `acos` returned NaN, docs/design.md#defect-acos). The original lists four sign
+//! combinations; the sign of the shear `t₁₂ = k·sin β·sin γ` rules out two of them, leaving
+//! `(β₀, ±γ₀)` and its mirror `(−β₀, ∓γ₀)`, which no orthographic image can tell apart (Necker
+//! ambiguity).
 //!
 //! **Perspective cue** (replaces the original's sign heuristic, whose defects are listed in
-//! METHOD.md §9.13). With a finite focal length the local grid frequency grows with the depth:
-//! `|∇φ| ∝ depth`, so `∇log|∇φ| = ∇depth/depth`. The image is demodulated by each plane over a
-//! grid of blocks; the residual phases are fitted by a quadratic whose Hessian `H` gives
-//! `∇log|∇φ| = H·∇φ/|∇φ|²` for each plane. The candidate whose predicted depth gradient
+//! docs/design.md#defect-3d-heuristic). With a finite focal length the local grid frequency grows
+//! with the depth: `|∇φ| ∝ depth`, so `∇log|∇φ| = ∇depth/depth`. The image is demodulated by each
+//! plane over a grid of blocks; the residual phases are fitted by a quadratic whose Hessian `H`
+//! gives `∇log|∇φ| = H·∇φ/|∇φ|²` for each plane. The candidate whose predicted depth gradient
 //! (third row of `R`: `depth = z − sin β·x_p + cos β·sin γ·y_p`) points the same way is the most
 //! likely one. On a truly orthographic image the cue is noise: see
 //! [`OutOfPlanePose::cue_strength`].
@@ -31,7 +32,7 @@ use std::f64::consts::TAU;
 /// Blocks per image side used by the perspective cue.
 const CUE_BLOCKS: usize = 8;
 
-/// Out-of-plane pose of a pattern (METHOD.md §4.9), orthographic model.
+/// Out-of-plane pose of a pattern (docs/design.md#pose-3d), orthographic model.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OutOfPlanePose {
     /// The two orthographic solutions `(β₀, ±γ₀)` and `(−β₀, ∓γ₀)` (same `x, y, alpha`,

@@ -1,5 +1,5 @@
 //! Dot sampling on the lattice given by the two phase planes: the "thumbnail" of present and
-//! missing dots (METHOD.md §5.1.1–5.1.2, redesigned).
+//! missing dots (docs/design.md#megarena-thumbnail, redesigned).
 //!
 //! The original classifies every pixel by its unwrapped phases. Here the (more accurate) planes
 //! are used directly: lattice node `(n1, n2)` is the image point where `φ1 = 2π·n1` and
@@ -13,10 +13,10 @@
 //! background is sampled every third node in both directions, immune to illumination
 //! gradients, and a spurious dot on one of them does not matter).
 //!
-//! Thumbnail axis k follows phase k (index `n_k`), over the orders that the image actually
-//! covers (the original sized both axes from the row and column counts, METHOD.md §9.6).
-//! Cost: one bilinear sample per node inside the image, `≈ R·C/p²` for a pixel period `p`
-//! (10⁴ at 1024² and 10 px).
+//! Thumbnail axis k follows phase k (index `n_k`), over the orders that the image actually covers
+//! (the original sized both axes from the row and column counts,
+//! docs/design.md#defect-megarena-check). Cost: one bilinear sample per node inside the image,
+//! `≈ R·C/p²` for a pixel period `p` (10⁴ at 1024² and 10 px).
 
 use super::orientation::Orientation;
 use crate::error::{Error, Result};

@@ -1,5 +1,5 @@
 //! Gaussian band-pass around one lobe, inverse transform, unwrapped phase and plane fit
-//! (METHOD.md §4.4–4.6), computed on a **demodulated, decimated** grid.
+//! (docs/design.md#phase-bandpass), computed on a **demodulated, decimated** grid.
 //!
 //! The band-passed signal is the trigonometric polynomial
 //! `z(x, y) = Σ_k W(k)·G(k)·exp(2πi(kx·x/C + ky·y/R))` whose weights `W` (a Gaussian of σ bins

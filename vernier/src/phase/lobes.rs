@@ -1,4 +1,4 @@
-//! Lobe (spectral peak) search, METHOD.md §4.3, on the half spectrum.
+//! Lobe (spectral peak) search, docs/design.md#phase-lobes, on the half spectrum.
 //!
 //! Differences from the original, on purpose:
 //! * the ring band-pass defaults to 4 bins (not 20), so small windows with few periods work;
@@ -8,7 +8,7 @@
 //! * a lobe must stand out of the ring's RMS amplitude by `min_peak_prominence`, so pure noise is
 //!   reported as "not found" instead of yielding a random pose;
 //! * a diagonal harmonic picked instead of a fundamental is detected and replaced
-//!   ([`fundamentals`]);
+//!   (`fundamentals`);
 //! * one streaming pass over the stored half spectrum keeps the strongest few local maxima;
 //!   3×3 energies are only evaluated there (≈ 0.5 ms for a 1024² spectrum).
 
@@ -21,7 +21,7 @@ pub struct Lobe {
     pub kx: i64,
     /// Frequency along rows, cycles per image height.
     pub ky: i64,
-    /// Root of the 3×3 neighbourhood energy divided by the pixel count (METHOD.md's "peak
+    /// Root of the 3×3 neighbourhood energy divided by the pixel count (the original's "peak
     /// power" up to the smoothing kernel).
     pub power: f64,
     /// Root of the 3×3 energy over that of an average 3×3 neighbourhood of the ring

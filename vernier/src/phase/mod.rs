@@ -1,4 +1,5 @@
-//! The fine phase engine (METHOD.md §4): image → spectrum → two lobes → two phase planes.
+//! The fine phase engine (docs/design.md#phase-engine): image → spectrum → two lobes → two phase
+//! planes.
 //!
 //! Steps, each in its own module:
 //! 1. [`spectrum`]: real-to-complex 2-D FFT (plans and buffers cached per image size);
@@ -33,7 +34,8 @@ use spectrum::SpectrumPlan;
 /// Smallest accepted image side, pixels: below this no lobe can be told from DC.
 pub const MIN_IMAGE_SIDE: usize = 16;
 
-/// Parameters of the phase engine (METHOD.md §7, with the same names where they exist).
+/// Parameters of the phase engine (docs/design.md#settings; the original's names where it has
+/// them).
 #[derive(Clone, Debug, PartialEq)]
 pub struct PhaseParams {
     /// Gaussian band-pass σ, spectrum bins (cycles per image). Default 3.
@@ -61,10 +63,11 @@ pub struct PhaseParams {
     /// with `refine_iterations = 0` the full-size transform is always used; with refinement the
     /// band-pass planes are only a starting point and the result is identical either way.
     pub full_resolution_bandpass: bool,
-    /// Run the spectral stage (FFT, lobe search, band-pass) on a 2×2-binned copy of images of
-    /// at least 128 px per side, 4× cheaper; the full-size refinement then restores full
-    /// accuracy (tests/periodic_roundtrip.rs checks both give the same result). Only used when
-    /// refining; grids finer than 6 px per period fall back to the full-size stage. Default true.
+    /// Run the spectral stage (FFT, lobe search, band-pass; docs/design.md#phase-binning) on a
+    /// 2×2-binned copy of images of at least 128 px per side, 4× cheaper; the full-size
+    /// refinement then restores full accuracy (tests/periodic_roundtrip.rs checks both give the
+    /// same result). Only used when refining; grids finer than 6 px per period fall back to the
+    /// full-size stage. Default true.
     pub spectrum_binning: bool,
     /// Keep the decimated phase maps in the result (for display). Default false.
     pub keep_phase_maps: bool,
@@ -247,6 +250,34 @@ impl SizeCache {
 
 /// The phase engine. Keeps FFT plans and work buffers for the last few image sizes, so calling
 /// it on a stream of same-size frames allocates nothing after the first frame.
+///
+/// # Example
+///
+/// A periodic grid of 10 µm period seen at 1.25 µm per pixel (8 px per period), rendered at a
+/// known pose; the two phase planes give the grid's pixel period and direction:
+///
+/// ```
+/// use vernier::layout::PeriodicLayout;
+/// use vernier::render::{render, RenderOptions};
+/// use vernier::{PhaseEngine, PhaseParams, Pose};
+///
+/// # fn main() -> vernier::Result<()> {
+/// let layout = PeriodicLayout::new(10.0, 41, 41)?;
+/// let truth = Pose::planar(2.5, -1.0, 0.3, 1.25);
+/// let options = RenderOptions { blur_sigma: 0.5, ..RenderOptions::new(128, 128) };
+/// let image = render(&layout, &truth, &options)?;
+///
+/// let mut engine = PhaseEngine::new(); // keep it: plans are reused for same-size frames
+/// let analysis = engine.analyze(&image, &PhaseParams::default())?;
+/// for plane in &analysis.planes {
+///     assert!((plane.pixel_period() - 8.0).abs() < 1e-3); // pixels per period
+/// }
+/// // Plane 1 is the grid direction in [0, π/2): here the pattern x axis, at `alpha`.
+/// assert!((analysis.planes[0].angle() - truth.alpha).abs() < 1e-4);
+/// assert!(analysis.quality > 0.5);
+/// # Ok(())
+/// # }
+/// ```
 #[derive(Default)]
 pub struct PhaseEngine {
     caches: Vec<SizeCache>,
@@ -384,13 +415,15 @@ impl PhaseEngine {
         })
     }
 
-    /// Refines `start` planes against `image` with a per-pixel weight map (row-major, same size
-    /// as the image, values ≥ 0; NaN counts as 0) multiplying the engine's window.
+    /// Refines `start` planes against `image` (docs/design.md#phase-weighted) with a per-pixel
+    /// weight map (row-major, same size as the image, values ≥ 0; NaN counts as 0) multiplying the
+    /// engine's window.
     ///
-    /// Coarse steps use it once they know which pixels do not follow the periodic model: a
-    /// Megarena's missing code dots, an HP code's finders and ID dots, a stamp's frame and
-    /// glyphs. Giving them weight 0 removes the bias they cause (up to 1e-2 px on a Megarena
-    /// with the plain refinement). Cost ≈ 50 multiply-adds per pixel and iteration.
+    /// For coarse steps that know which pixels do not follow the periodic model: a Megarena's
+    /// missing code dots, an HP code's finders and ID dots, a stamp's frame and glyphs. Giving
+    /// them weight 0 removes the bias they cause (up to 1e-2 px on a Megarena with the plain
+    /// refinement). No detector calls it at present (they keep such pixels out by other means).
+    /// Cost ≈ 50 multiply-adds per pixel and iteration.
     pub fn refine_weighted(
         &mut self,
         image: &GreyImage,
@@ -479,7 +512,8 @@ impl PhaseEngine {
     }
 }
 
-/// Spectrum, lobe search and band-pass planes (METHOD.md §4.2–4.6) of a `cache`-sized image.
+/// Spectrum, lobe search and band-pass planes (docs/design.md#phase-engine) of a `cache`-sized
+/// image.
 fn spectral_estimate(
     pixels: &[f32],
     cache: &mut SizeCache,

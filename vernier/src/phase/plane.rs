@@ -1,4 +1,5 @@
-//! Phase planes `φ(x, y) = a·x + b·y + c` and their least-squares fit (METHOD.md §4.6–4.7).
+//! Phase planes `φ(x, y) = a·x + b·y + c` and their least-squares fit
+//! (docs/design.md#phase-planes).
 
 use std::f64::consts::{PI, TAU};
 
@@ -62,7 +63,7 @@ pub fn wrap_to_pi(angle: f64) -> f64 {
     }
 }
 
-/// Reduces an angle to `[−π, π)` (METHOD.md's `wrap`, used for pose angles).
+/// Reduces an angle to `[−π, π)` (the original's `wrap`, used for pose angles).
 pub fn wrap_angle(angle: f64) -> f64 {
     let w = (angle + PI).rem_euclid(TAU) - PI;
     if w >= PI {
@@ -119,7 +120,7 @@ mod tests {
 
     #[test]
     fn ramp_fit_matches_original_regression() {
-        // METHOD.md §8.2: 8×10 ramp (value 2·col), crop 0.5 → a = 2, b = 0, c = 10.
+        // The original's unit test: 8×10 ramp (value 2·col), crop 0.5 → a = 2, b = 0, c = 10.
         let (rows, cols) = (8usize, 10usize);
         let (r0, c0) = (rows / 4, cols * 5 / 20);
         let samples = (r0..rows - r0).flat_map(|r| {

@@ -1,9 +1,9 @@
 //! Windowed Gauss–Newton refinement of the two phase planes on the full-resolution image.
 //!
-//! The Gaussian band-pass of METHOD.md §4.4 lets neighbouring spectral content leak into each
-//! lobe (the other lobe's conjugate and the (1, ±1) harmonics sit one grid frequency away), which
-//! biases its plane by up to ~1e-3 px on small images with few periods. Here both planes are
-//! refined against the image itself: with the current planes `φ_l`, a windowed linear
+//! The Gaussian band-pass (docs/design.md#phase-bandpass) lets neighbouring spectral content leak
+//! into each lobe (the other lobe's conjugate and the (1, ±1) harmonics sit one grid frequency
+//! away), which biases its plane by up to ~1e-3 px on small images with few periods. Here both
+//! planes are refined against the image itself: with the current planes `φ_l`, a windowed linear
 //! least-squares fit of
 //!
 //! `g(x, y) ≈ μ + Σ_l Re(A_l·(1 + i(δa_l·x + δb_l·y))·e^{iφ_l(x, y)})`

@@ -1,10 +1,11 @@
 //! 2-D real-to-complex spectrum with plans and buffers cached per image size.
 //!
-//! Layout of the stored half spectrum: **kx-major** (`bins[kx * rows + ky_index]`), `kx ∈ [0, cols/2]`,
-//! `ky_index ∈ [0, rows)` with `ky = ky_index` for `ky_index < rows − rows/2` (non-negative
-//! frequencies) and `ky = ky_index − rows` otherwise, the usual FFT order. The transform is the
-//! unnormalised forward DFT `G[k] = Σ g[n]·exp(−2πi k·n/N)` of METHOD.md §4.2. Bins with `kx < 0`
-//! follow from Hermitian symmetry: `G(−kx, −ky) = conj G(kx, ky)`.
+//! Layout of the stored half spectrum: **kx-major** (`bins[kx * rows + ky_index]`),
+//! `kx ∈ [0, cols/2]`, `ky_index ∈ [0, rows)` with `ky = ky_index` for `ky_index < rows − rows/2`
+//! (non-negative frequencies) and `ky = ky_index − rows` otherwise, the usual FFT order. The
+//! transform is the unnormalised forward DFT `G[k] = Σ g[n]·exp(−2πi k·n/N)`
+//! (docs/design.md#phase-spectrum). Bins with `kx < 0` follow from Hermitian symmetry:
+//! `G(−kx, −ky) = conj G(kx, ky)`.
 
 use num_complex::Complex;
 use realfft::{RealFftPlanner, RealToComplex};

@@ -1,14 +1,14 @@
 //! Identity, orientation and period shift of a marker by matching its thumbnail against the
-//! bitmaps (METHOD.md §5.4.2–5.4.3, redesigned).
+//! bitmaps (docs/design.md#stamp-matching, redesigned).
 //!
-//! A hypothesis maps thumbnail cells `i` (indices along the measured phases) to bitmap cells
-//! `j` (relative to the bitmap's central dot) by `j = j0 + R·i`, `R` one of the 8 dihedral
-//! transforms (4 rotations, optionally mirrored) and `j0` an even offset (dots land on dots).
-//! Its score is the Pearson correlation between the thumbnail's grey levels and the bitmap's
-//! 0/1 cells over every thumbnail cell seen in the image (cells beyond the bitmap count as
-//! background, 0). The best hypothesis over all bitmaps gives the marker's identity and where
-//! its origin lies in the thumbnail (`i* = −R⁻¹·j0`), from which the pose follows without the
-//! original's re-orientation table and its period-shift sign slip (METHOD.md §9.12).
+//! A hypothesis maps thumbnail cells `i` (indices along the measured phases) to bitmap cells `j`
+//! (relative to the bitmap's central dot) by `j = j0 + R·i`, `R` one of the 8 dihedral transforms
+//! (4 rotations, optionally mirrored) and `j0` an even offset (dots land on dots). Its score is the
+//! Pearson correlation between the thumbnail's grey levels and the bitmap's 0/1 cells over every
+//! thumbnail cell seen in the image (cells beyond the bitmap count as background, 0). The best
+//! hypothesis over all bitmaps gives the marker's identity and where its origin lies in the
+//! thumbnail (`i* = −R⁻¹·j0`), from which the pose follows without the original's re-orientation
+//! table and its period-shift sign slip (docs/design.md#defect-stamp-shift).
 
 use super::thumbnail::Thumbnail;
 use crate::layout::BitmapLayout;

@@ -1,41 +1,39 @@
-//! Stamp and bitmap markers (METHOD.md §1.5, §5.3, §5.4): identity and absolute pose of
+//! Stamp and bitmap markers (docs/design.md#stamp): identity and absolute pose of
 //! markers drawn as 0/1 bitmaps on the half-period grid.
 //!
 //! Two ways to find them, chosen from the bitmaps ([`StampSearch::Auto`]):
-//! * **framed** (stamps: bitmaps with a solid border ring): every quadrilateral outline of a
-//!   region brighter or darker than its surroundings is a candidate ([`quads`]), in the
-//!   polarity of that region; around its centre a square window, its weighted mean removed
-//!   (the window's own spectrum would otherwise swamp a faint grid) and apodised by the
-//!   flat-top radial window of METHOD.md §5.3.2, goes through the phase engine; the frame's
-//!   size must agree with the measured period; the bitmap thumbnail read along the phase
-//!   planes (`thumbnail`) is matched against every bitmap in its 8 dihedral orientations and a
-//!   few period shifts (`matching`); the reading must be confident
-//!   ([`StampParams::min_decode_confidence`]) and the frame it predicts must lie where the
-//!   frame was found ([`StampParams::max_frame_offset`]); the pose follows. Any number of
-//!   stamps per image, several with the same bitmap included (the original keeps one of
+//! * **framed** (stamps: bitmaps with a solid border ring): every quadrilateral outline of a region
+//!   brighter or darker than its surroundings is a candidate ([`quads`]), in the polarity of that
+//!   region; around its centre a square window, its weighted mean removed (the window's own
+//!   spectrum would otherwise swamp a faint grid) and apodised by the flat-top radial window
+//!   (docs/design.md#stamp-window), goes through the phase engine; the frame's size must agree with
+//!   the measured period; the bitmap thumbnail read along the phase planes (`thumbnail`) is matched
+//!   against every bitmap in its 8 dihedral orientations and a few period shifts (`matching`); the
+//!   reading must be confident ([`StampParams::min_decode_confidence`]) and the frame it predicts
+//!   must lie where the frame was found ([`StampParams::max_frame_offset`]); the pose follows. Any
+//!   number of stamps per image, several with the same bitmap included (the original keeps one of
 //!   them).
 //! * **full image** (other bitmaps, e.g. an HP code layout seen as a bitmap): the phase engine on
 //!   the whole image, then the same thumbnail and matching over every position of the bitmap,
 //!   then a second, apodised measurement in a window on the bitmap found (the whole-image fit
 //!   weighs an off-centre marker unevenly and leaks at its edges: ~1e-3 rad, 5e-3 px).
 //!
-//! Poses (METHOD.md §6): the pattern origin is the bitmap's central dot; `alpha` is the
+//! Poses (docs/design.md#frames): the pattern origin is the bitmap's central dot; `alpha` is the
 //! direction of the bitmap's x axis (increasing column) in the image, averaged with that of its
 //! y axis turned back by 90° (forward for a mirrored view), and the pixel size the mean of the
 //! two grid frequencies. The central dot's image position is where the two phase planes take
 //! the values the match assigns to it, which is exact for any affine view. A mirrored marker (a
 //! flipped image or optical path) gets the proper rigid pose of the pattern seen from behind,
-//! as HP codes do: `gamma = π` (`cTp = Rz(α)·Rx(π)·Trans(x, y, 0)`, so its y axis appears at
-//! `alpha − π/2`).
+//! as HP codes do: `gamma = −π`, a half turn (`cTp = Rz(α)·Rx(π)·Trans(x, y, 0)`, so its y axis
+//! appears at `alpha − π/2`).
 //!
 //! Differences from the original, on purpose: no silent loss of same-ID stamps; the thumbnail
-//! covers the whole bitmap (frame included) instead of its interior, so the period shift is
-//! pinned by the frame; the period-shift sign slip of METHOD.md §9.12 cannot occur (the match
-//! states where the origin is in the thumbnail); mirrored markers are recognised and reported
-//! with their proper pose (or dropped with [`StampParams::allow_mirrored`] off); the window is
-//! sized from the frame (largest `2^a·3^b` side inside the dot field) rather than fixed; a
-//! reading that is a near tie or a pose that disagrees with the frame is dropped, never
-//! reported.
+//! covers the whole bitmap (frame included) instead of its interior, so the period shift is pinned
+//! by the frame; the original's period-shift sign slip (docs/design.md#defect-stamp-shift) cannot
+//! occur (the match states where the origin is in the thumbnail); mirrored markers are recognised
+//! and reported with their proper pose (or dropped with [`StampParams::allow_mirrored`] off); the
+//! window is sized from the frame (largest `2^a·3^b` side inside the dot field) rather than fixed;
+//! a reading that is a near tie or a pose that disagrees with the frame is dropped, never reported.
 
 mod matching;
 pub mod quads;
@@ -113,7 +111,7 @@ pub struct StampParams {
     /// frame's size is checked by [`StampParams::size_tolerance`].)
     pub max_frame_offset: f64,
     /// Report mirrored markers (a flipped image or optical path), with their proper rigid pose
-    /// (`gamma = π`, see the module docs). Default true; false drops them (and mirrored
+    /// (`gamma = −π`, see the module docs). Default true; false drops them (and mirrored
     /// readings are then no rivals of proper ones in the decode confidence).
     pub allow_mirrored: bool,
     /// Phase-engine settings.
@@ -286,6 +284,52 @@ pub struct StampDetection {
 
 /// Finds stamp / bitmap markers and measures their absolute poses. Keeps FFT plans, the
 /// apodisation windows and the frame-search buffers between frames.
+///
+/// # Example
+///
+/// ```
+/// use vernier::layout::BitmapLayout;
+/// use vernier::phase::wrap_to_pi;
+/// use vernier::render::{render, RenderOptions};
+/// use vernier::stamp::{StampDetector, StampParams};
+/// use vernier::Pose;
+///
+/// # fn main() -> vernier::Result<()> {
+/// // A 69 × 69-cell stamp: a 3-cell solid frame, a 1-cell gap, 31 × 31 dots on the even
+/// // cells and a solid L-shaped glyph that breaks the symmetry.
+/// let n = 69;
+/// let rows: Vec<Vec<u8>> = (0..n)
+///     .map(|r| {
+///         (0..n)
+///             .map(|c| {
+///                 let frame = r < 3 || c < 3 || r >= n - 3 || c >= n - 3;
+///                 let inside = (4..n - 4).contains(&r) && (4..n - 4).contains(&c);
+///                 let dot = inside && r % 2 == 0 && c % 2 == 0;
+///                 let glyph = ((8..19).contains(&r) && (50..53).contains(&c))
+///                     || ((16..19).contains(&r) && (50..61).contains(&c));
+///                 u8::from(frame || dot || glyph)
+///             })
+///             .collect()
+///     })
+///     .collect();
+/// let bitmap = BitmapLayout::from_rows(10.0, &rows)?;
+///
+/// // 10 µm period at 2 µm per pixel: 5 px per period, a 173-px stamp turned by 0.25 rad.
+/// let truth = Pose::planar(3.0, -2.0, 0.25, 2.0);
+/// let options = RenderOptions { blur_sigma: 0.5, ..RenderOptions::new(256, 256) };
+/// let image = render(&bitmap, &truth, &options)?;
+///
+/// let mut detector = StampDetector::new(StampParams::new(10.0, vec![bitmap]))?;
+/// let stamps = detector.detect(&image)?;
+/// assert_eq!(stamps.len(), 1);
+/// let (stamp, tolerance) = (&stamps[0], 0.01 * truth.pixel_size);
+/// assert_eq!(stamp.id, 0); // index of its bitmap
+/// assert!((stamp.pose.x - truth.x).abs() < tolerance);
+/// assert!((stamp.pose.y - truth.y).abs() < tolerance);
+/// assert!(wrap_to_pi(stamp.pose.alpha - truth.alpha).abs() < 1e-4);
+/// # Ok(())
+/// # }
+/// ```
 pub struct StampDetector {
     params: StampParams,
     mode: StampSearch,

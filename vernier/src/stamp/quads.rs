@@ -1,5 +1,5 @@
-//! Candidate stamp frames: convex quadrilaterals outlining regions of one colour (METHOD.md
-//! §5.3.1, redesigned).
+//! Candidate stamp frames: convex quadrilaterals outlining regions of one colour
+//! (docs/design.md#stamp-frames, redesigned).
 //!
 //! A stamp's frame is a solid ring of fabricated material, brighter or darker than what
 //! surrounds it, so its **outer border** is a quadrilateral however blurred the image is and

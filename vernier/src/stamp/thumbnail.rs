@@ -1,5 +1,5 @@
-//! Bitmap thumbnail: the image resampled on the marker's own half-period grid (METHOD.md
-//! §5.4.1, redesigned).
+//! Bitmap thumbnail: the image resampled on the marker's own half-period grid
+//! (docs/design.md#stamp-thumbnail, redesigned).
 //!
 //! The two phase planes say where every half-period cell of the marker lies in the image: cell
 //! `(i1, i2)` is centred where `φ1 = π·i1` and `φ2 = π·i2` (even indices are dots, odd ones the
