@@ -31,7 +31,7 @@ pub use grouping::{group_finders, pair_hypotheses, FinderTriple};
 
 use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
-use crate::phase::{wrap_angle, PhaseAnalysis, PhaseEngine, PhaseParams};
+use crate::phase::{wrap_angle, LobePrior, PhaseAnalysis, PhaseEngine, PhaseParams};
 use crate::pose::{rotate2, Pose};
 use finders::FinderScanner;
 use nalgebra::Vector2;
@@ -45,6 +45,13 @@ const MAX_HYPOTHESES: usize = 48;
 /// Smallest fraction of the marker's dots and gaps that must look right
 /// ([`marker_id::grid_support`]); dust and hair may spoil the rest.
 const MIN_GRID_SUPPORT: f64 = 0.75;
+
+/// Search radius of the guided lobe search, fraction of the expected frequency: finder module
+/// (~5 %), axis angle (~0.05 rad) and foreshortening of a 25° tilt (10 %).
+const LOBE_TOLERANCE: f64 = 0.2;
+/// Prominence a lobe needs where the finders expect it. White noise reaches 2 in a disc of a
+/// few dozen bins with a probability of ~1e-8; a wrong lobe still fails the fine checks.
+const GUIDED_PROMINENCE: f64 = 2.0;
 
 /// Smallest analysis window side, pixels.
 const MIN_WINDOW: usize = 32;
@@ -347,14 +354,19 @@ impl HpCodeDetector {
         };
         let hann_center = hann.then_some(hann_center);
         let window = self.window_image(image, index_center, size, triple.polarity, hann_center)?;
-        let analysis = match self.engine.analyze(&window, &self.params.phase) {
-            Ok(a) => a,
-            Err(Error::PatternNotFound(why)) => {
-                log::trace!("window {size} px at {index_center:?}: {why}");
-                return Ok(None);
-            }
-            Err(e) => return Err(e),
-        };
+        let prior = lobe_prior(triple);
+        let analysis =
+            match self
+                .engine
+                .analyze_with_prior(&window, &self.params.phase, Some(&prior))
+            {
+                Ok(a) => a,
+                Err(Error::PatternNotFound(why)) => {
+                    log::trace!("window {size} px at {index_center:?}: {why}");
+                    return Ok(None);
+                }
+                Err(e) => return Err(e),
+            };
         let origin = Vector2::new(index_center.0 as f64, index_center.1 as f64);
         Ok(fine::locate(&analysis.planes, triple, origin)
             .map(|grid| (index_center, analysis, grid)))
@@ -638,4 +650,21 @@ fn hann_window(size: usize, c: f64) -> Vec<f32> {
         }
     }
     w
+}
+
+/// Where the finders of `triple` expect the grid's lobes: along the finder legs, at the
+/// period twice their module.
+fn lobe_prior(triple: &FinderTriple) -> LobePrior {
+    let frequency = |leg: Vector2<f64>| {
+        let f = leg.normalize() / (2.0 * triple.module_px);
+        [f.x, f.y]
+    };
+    LobePrior {
+        frequencies: [
+            frequency(triple.right - triple.corner),
+            frequency(triple.bottom - triple.corner),
+        ],
+        tolerance: LOBE_TOLERANCE,
+        min_prominence: GUIDED_PROMINENCE,
+    }
 }

@@ -93,7 +93,7 @@ pub mod megarena_sequence;
 pub mod pattern_file;
 pub mod phase;
 pub use grey_image::{parse_polarity_setting, GreyImage, PixelFormat, Polarity};
-pub use phase::{PhaseAnalysis, PhaseEngine, PhaseParams, PhasePlane, Refinement};
+pub use phase::{LobePrior, PhaseAnalysis, PhaseEngine, PhaseParams, PhasePlane, Refinement};
 pub mod pose;
 pub mod render;
 pub use pose::Pose;

@@ -593,7 +593,11 @@ mod tests {
         // must be found by labelling finer levels around them.
         let (w, h) = (1100, 1100);
         let mut px = vec![0.0f32; w * h];
-        let placed = [(200.3, 210.7, 2.0), (700.0, 300.0, 5.0), (520.0, 760.0, 40.0)];
+        let placed = [
+            (200.3, 210.7, 2.0),
+            (700.0, 300.0, 5.0),
+            (520.0, 760.0, 40.0),
+        ];
         for &(cx, cy, m) in &placed {
             paint_finder(&mut px, w, cx, cy, m);
         }

@@ -44,6 +44,15 @@ pub(crate) struct EdgeBits {
     /// Smallest signed distance of a dot's level above the threshold, half contrasts: > 0
     /// when every dot of the edge is present, the more so the larger.
     pub completeness: f64,
+    /// The same for all dots but the worst one (what the edge shows if that dot is spoiled).
+    pub completeness_but_one: f64,
+}
+
+impl EdgeBits {
+    /// Dots of the edge read as absent.
+    fn missing(&self) -> usize {
+        self.bits.iter().filter(|&&b| b).count()
+    }
 }
 
 impl EdgeBits {
@@ -57,6 +66,9 @@ impl EdgeBits {
             .sum()
     }
 }
+
+/// Missing dots of the ID edge from which one spoiled dot of the complete edge is tolerated.
+const MIN_MISSING_TO_TOLERATE_ONE: usize = 3;
 
 /// Result of reading a marker's ID.
 #[derive(Clone, Debug, PartialEq)]
@@ -83,23 +95,35 @@ pub(crate) fn read_id(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> 
     let top = read_edge(image, polarity, grid, false)?;
     let left = read_edge(image, polarity, grid, true)?;
     // Seen from the front the left column is complete and the top row holds the ID; mirrored,
-    // the other way round. Front unless the left column misses a dot and the top row is the
-    // more clearly complete edge (a dot spoiled by dust or hair then costs confidence instead
-    // of flipping the marker; a marker with ID 0 reads the same both ways and stays front).
-    let mirrored = left.completeness < 0.0 && top.completeness > left.completeness;
+    // the other way round: the edge missing fewer dots is the complete one. On a tie (ID 0,
+    // or a spoiled dot), front unless the left column misses a dot and the top row is the
+    // more clearly complete edge (a marker with ID 0 reads the same both ways).
+    let mirrored = match left.missing().cmp(&top.missing()) {
+        std::cmp::Ordering::Less => false,
+        std::cmp::Ordering::Greater => true,
+        std::cmp::Ordering::Equal => {
+            left.completeness < 0.0 && top.completeness > left.completeness
+        }
+    };
     let (id_edge, complete_edge) = if mirrored {
         (&left, &top)
     } else {
         (&top, &left)
     };
-    let confidence = id_edge
-        .margin
-        .min(complete_edge.completeness.clamp(0.0, 1.0));
+    // One dot of the complete edge spoiled by dust or hair is tolerated when the ID edge
+    // misses enough dots that the two edges cannot be told apart wrongly (1 against ≥ 3);
+    // otherwise a spoiled dot leaves the handedness in doubt and costs all confidence.
+    let completeness = if id_edge.missing() >= MIN_MISSING_TO_TOLERATE_ONE {
+        complete_edge.completeness_but_one
+    } else {
+        complete_edge.completeness
+    };
+    let confidence = id_edge.margin.min(completeness.clamp(0.0, 1.0));
     Some(IdReading {
         id: id_edge.value(),
         mirrored,
         confidence,
-        parts: (id_edge.margin, complete_edge.completeness),
+        parts: (id_edge.margin, completeness),
     })
 }
 
@@ -153,11 +177,13 @@ fn read_edge(
         .iter()
         .map(|s| s.abs().min(1.0))
         .fold(1.0f64, f64::min);
-    let completeness = signed.iter().copied().fold(f64::INFINITY, f64::min);
+    let mut sorted = signed.clone();
+    sorted.sort_by(f64::total_cmp);
     Some(EdgeBits {
         bits,
         margin,
-        completeness,
+        completeness: sorted.first().copied().unwrap_or(f64::INFINITY),
+        completeness_but_one: sorted.get(1).copied().unwrap_or(f64::INFINITY),
     })
 }
 
@@ -248,9 +274,19 @@ pub(crate) fn grid_precheck(
 /// Whether the four corners of the marker show what they must: a finder square at the three
 /// finder corners and plain dots at the fourth. A finder differs from a block of dots by its
 /// *bridges*: the cells between two neighbouring dot positions are material in its ring and
-/// centre, empty in a dot grid. So a reading turned by a quarter turn (three finders seen as a
-/// different corner triple, e.g. from a two-finder hypothesis) is caught: it expects dots where
-/// a finder is. Lenient on the finders (dust may hide one), strict on the dot corner.
+/// centre (13 of 24, more when blurred), empty in a dot grid. So a reading turned by a quarter
+/// turn (three finders seen as a different corner triple, e.g. from a two-finder hypothesis)
+/// is caught: it expects dots where a finder is. Lenient on the finders (dust may hide one:
+/// the middle one of the three is compared), strict on the dot corner.
+///
+/// Dust or hair at the level of the material fills the bridges of a dot corner too, but also
+/// the *diagonal* cells between four dots, which are empty in a sharp finder (but its very
+/// centre, 1 of 9). So the corners also pass when the bridge fraction minus the diagonal
+/// fraction (~0.43 for a sharp finder, ~0 for dots, occluded or not) tells them apart. Blur
+/// fills a finder's diagonals as well, so that second test only helps sharp markers. Whatever
+/// the test, no finder corner may look like plain dots (most dots present, almost no bridges):
+/// an occluded finder shows all ink or none, plain dots are the other corner of a reading
+/// turned by a quarter turn.
 pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> bool {
     let n = grid.size;
     if n < 9 {
@@ -259,41 +295,52 @@ pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &D
     let Some(threshold) = bridge_threshold(image, polarity, grid) else {
         return false;
     };
-    let bridges = |r0: usize, c0: usize| -> Option<f64> {
-        let (mut ink, mut count) = (0usize, 0usize);
+    let ink = |p: Vector2<f64>| -> Option<f64> {
+        Some(f64::from(u8::from(
+            dot_level(image, polarity, p, grid)? > threshold,
+        )))
+    };
+    // Ink fractions of the bridges, the diagonals and the dots of the 4×4 dots from (r0, c0).
+    let corner = |(r0, c0): (usize, usize)| -> Option<(f64, f64, f64)> {
+        let (mut bridges, mut diagonals, mut dots) = (0.0, 0.0, 0.0);
         for r in r0..r0 + 4 {
             for c in c0..c0 + 4 {
-                let mut probe = |p: Vector2<f64>| -> Option<()> {
-                    count += 1;
-                    ink += (dot_level(image, polarity, p, grid)? > threshold) as usize;
-                    Some(())
-                };
+                let (rf, cf) = (r as f64, c as f64);
+                dots += ink(grid.at(rf, cf))?;
                 if c + 1 < c0 + 4 {
-                    probe(grid.at(r as f64, c as f64 + 0.5))?;
+                    bridges += ink(grid.at(rf, cf + 0.5))?;
                 }
                 if r + 1 < r0 + 4 {
-                    probe(grid.at(r as f64 + 0.5, c as f64))?;
+                    bridges += ink(grid.at(rf + 0.5, cf))?;
+                }
+                if c + 1 < c0 + 4 && r + 1 < r0 + 4 {
+                    diagonals += ink(grid.at(rf + 0.5, cf + 0.5))?;
                 }
             }
         }
-        Some(ink as f64 / count as f64)
+        Some((bridges / 24.0, diagonals / 9.0, dots / 16.0))
     };
     let far = n - 4;
-    let finders = [(0, 0), (0, far), (far, 0)].map(|(r, c)| bridges(r, c));
-    let Some(dot_corner) = bridges(far, far) else {
+    let Some(finders) = [(0, 0), (0, far), (far, 0)]
+        .map(corner)
+        .into_iter()
+        .collect::<Option<Vec<_>>>()
+    else {
         return false;
     };
-    // Nominal: 13 of 24 bridges are material in a finder (more when blurred), none in a dot
-    // block; dust may spoil one corner of either kind, so the dot corner is compared with the
-    // middle finder corner.
-    let mut seen: Vec<f64> = finders.iter().flatten().copied().collect();
-    seen.sort_by(f64::total_cmp);
-    let middle = seen
-        .get(seen.len().saturating_sub(2))
-        .copied()
-        .unwrap_or(0.0);
-    log::trace!("corner bridges: finders {finders:?}, dot corner {dot_corner:.3}");
-    seen.len() == 3 && middle >= 0.3 && dot_corner < (0.5 * middle).min(0.4)
+    let Some(dots) = corner((far, far)) else {
+        return false;
+    };
+    log::trace!("corners (bridges, diagonals, dots): finders {finders:?}, dot corner {dots:.3?}");
+    if finders.iter().any(|c| c.2 >= 0.5 && c.0 < 0.2) {
+        return false;
+    }
+    let separated = |measure: fn(&(f64, f64, f64)) -> f64, min_finder: f64, max_dots: f64| {
+        let mut seen: Vec<f64> = finders.iter().map(measure).collect();
+        seen.sort_by(f64::total_cmp);
+        seen[1] >= min_finder && measure(&dots) < (0.5 * seen[1]).min(max_dots)
+    };
+    separated(|c| c.0, 0.3, 0.4) || separated(|c| c.0 - c.1, 0.2, 0.25)
 }
 
 /// Threshold halfway between the median level of the marker's inner dots and of the bridges

@@ -42,6 +42,16 @@ pub(crate) struct LobeSearch {
     pub min_peak_prominence: f64,
 }
 
+/// Where the two lobes are expected (see [`super::LobePrior`]), in bins.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Guide {
+    /// Expected signed bin frequency `(kx, ky)` of each lobe.
+    pub expected: [[f64; 2]; 2],
+    /// Search radius around each, bins.
+    pub radius: [f64; 2],
+    pub min_prominence: f64,
+}
+
 /// Why the search failed.
 #[derive(Debug)]
 pub(crate) enum LobeError {
@@ -81,9 +91,11 @@ fn insert_candidate(top: &mut Vec<Candidate>, c: Candidate) {
 
 /// Returns the two lobes, ordered so that lobe 1 has the larger `kx` (direction in `[0°, 90°)`),
 /// lobe 2 the other one (direction in `[90°, 180°)`).
+/// With a `guide`, each lobe is the strongest bin near where it is expected.
 pub(crate) fn find_lobes(
     spectrum: &HalfSpectrum<'_>,
     search: &LobeSearch,
+    guide: Option<&Guide>,
 ) -> Result<(Lobe, Lobe), LobeError> {
     let (rows, cols) = (spectrum.rows as i64, spectrum.cols as i64);
     let max_r = search
@@ -157,6 +169,9 @@ pub(crate) fn find_lobes(
             },
         }
     };
+    if let Some(guide) = guide {
+        return guided_lobes(guide, search.min_peak_power, &strength, &to_lobe);
+    }
     let ranked: Vec<Lobe> = {
         let mut v: Vec<Lobe> = top
             .iter()
@@ -207,6 +222,49 @@ pub(crate) fn find_lobes(
     } else {
         (second, first)
     })
+}
+
+/// The strongest bin within each guided disc, if it is strong and prominent enough.
+fn guided_lobes(
+    guide: &Guide,
+    min_power: f64,
+    strength: &dyn Fn(i64, i64) -> f64,
+    to_lobe: &dyn Fn((i64, i64, f64)) -> Lobe,
+) -> Result<(Lobe, Lobe), LobeError> {
+    let near = |i: usize| -> Result<Lobe, LobeError> {
+        let ([ex, ey], r) = (guide.expected[i], guide.radius[i]);
+        let mut best = (0i64, 0i64, 0.0f64);
+        for ky in (ey - r).floor() as i64..=(ey + r).ceil() as i64 {
+            for kx in (ex - r).floor() as i64..=(ex + r).ceil() as i64 {
+                let (dx, dy) = (kx as f64 - ex, ky as f64 - ey);
+                if dx * dx + dy * dy > r * r || (kx, ky) == (0, 0) {
+                    continue;
+                }
+                let v = strength(kx, ky);
+                if v > best.2 {
+                    best = (kx, ky, v);
+                }
+            }
+        }
+        let lobe = to_lobe(best);
+        if lobe.power > min_power && lobe.prominence >= guide.min_prominence {
+            return Ok(lobe);
+        }
+        let (power, prominence) = (lobe.power, lobe.prominence);
+        Err(if i == 0 {
+            LobeError::NoFirstPeak { power, prominence }
+        } else {
+            LobeError::NoSecondPeak { power, prominence }
+        })
+    };
+    let (a, b) = (near(0)?, near(1)?);
+    if (a.kx, a.ky) == (b.kx, b.ky) {
+        return Err(LobeError::NoSecondPeak {
+            power: b.power,
+            prominence: b.prominence,
+        });
+    }
+    Ok(if a.kx >= b.kx { (a, b) } else { (b, a) })
 }
 
 /// Replaces a harmonic picked instead of a fundamental.

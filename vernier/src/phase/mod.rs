@@ -73,6 +73,23 @@ pub struct PhaseParams {
     pub keep_phase_maps: bool,
 }
 
+/// Where a coarse step that already sees the grid (e.g. the HP code finders) expects the two
+/// spectral lobes of an image: the lobe search then looks only there, with a lower prominence
+/// threshold. A search over a few dozen bins instead of the whole ring keeps the same
+/// false-alarm rate at a much lower threshold, so a grid buried in noise is still measured,
+/// and clutter elsewhere in the spectrum can never be taken for it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LobePrior {
+    /// Expected frequency vector of each grid direction, cycles per pixel `(col, row)` in the
+    /// analysed image (either sign: a lobe and its mirror are the same).
+    pub frequencies: [[f64; 2]; 2],
+    /// Search radius around each, as a fraction of its length (scale error, angle error and
+    /// perspective of the coarse step); at least 2 bins.
+    pub tolerance: f64,
+    /// Smallest prominence accepted there (see [`PhaseParams::min_peak_prominence`]).
+    pub min_prominence: f64,
+}
+
 impl Default for PhaseParams {
     fn default() -> Self {
         PhaseParams {
@@ -350,6 +367,16 @@ impl PhaseEngine {
     /// [`Error::InvalidParameter`] for bad `params`, [`Error::PatternNotFound`] when no two
     /// lobes stand out of the spectrum.
     pub fn analyze(&mut self, image: &GreyImage, params: &PhaseParams) -> Result<PhaseAnalysis> {
+        self.analyze_with_prior(image, params, None)
+    }
+
+    /// [`PhaseEngine::analyze`], with the lobes searched only where `prior` expects them.
+    pub fn analyze_with_prior(
+        &mut self,
+        image: &GreyImage,
+        params: &PhaseParams,
+        prior: Option<&LobePrior>,
+    ) -> Result<PhaseAnalysis> {
         params.validate()?;
         let (rows, cols) = (image.height(), image.width());
         if rows < MIN_IMAGE_SIDE || cols < MIN_IMAGE_SIDE {
@@ -368,13 +395,13 @@ impl PhaseEngine {
         // it) on the image itself.
         let mut coarse = None;
         if binning {
-            coarse = self.binned_estimate(image, params)?;
+            coarse = self.binned_estimate(image, params, prior)?;
         }
         let coarse = match coarse {
             Some(c) => c,
             None => {
                 let cache = self.cache_for(rows, cols, params.sigma, full_resolution);
-                spectral_estimate(image.pixels(), cache, params)?
+                spectral_estimate(image.pixels(), cache, params, prior, 1.0)?
             }
         };
         let refined = if refining {
@@ -465,13 +492,14 @@ impl PhaseEngine {
         &mut self,
         image: &GreyImage,
         params: &PhaseParams,
+        prior: Option<&LobePrior>,
     ) -> Result<Option<SpectralEstimate>> {
         let (rows, cols) = (image.height(), image.width());
         let (rb, cb) = (rows / 2, cols / 2);
         let cache = self.cache_for(rb, cb, params.sigma, false);
         let mut binned = std::mem::take(&mut cache.binned);
         crate::grey_image::bin_2x2(image.pixels(), cols, rb, cb, &mut binned);
-        let estimate = spectral_estimate(&binned, cache, params);
+        let estimate = spectral_estimate(&binned, cache, params, prior, 2.0);
         let result = match estimate {
             Ok(mut e)
                 if e.planes
@@ -514,10 +542,13 @@ impl PhaseEngine {
 
 /// Spectrum, lobe search and band-pass planes (docs/design.md#phase-engine) of a `cache`-sized
 /// image.
+/// `prior` is in cycles per pixel of the full image, `binning` pixels per pixel of `pixels`.
 fn spectral_estimate(
     pixels: &[f32],
     cache: &mut SizeCache,
     params: &PhaseParams,
+    prior: Option<&LobePrior>,
+    binning: f64,
 ) -> Result<SpectralEstimate> {
     let search = lobes::LobeSearch {
         min_radius: params.min_frequency,
@@ -535,7 +566,17 @@ fn spectral_estimate(
         return Err(Error::PatternNotFound("internal: plans missing".into()));
     };
     let spectrum = spectrum_plan.forward(pixels);
-    let (lobe1, lobe2) = lobes::find_lobes(&spectrum, &search).map_err(|e| {
+    let guide = prior.map(|p| {
+        let (rows, cols) = (cache.rows as f64, cache.cols as f64);
+        let bins = |f: [f64; 2]| [f[0] * binning * cols, f[1] * binning * rows];
+        let expected = p.frequencies.map(bins);
+        lobes::Guide {
+            expected,
+            radius: expected.map(|e| (p.tolerance * e[0].hypot(e[1])).max(2.0)),
+            min_prominence: p.min_prominence,
+        }
+    });
+    let (lobe1, lobe2) = lobes::find_lobes(&spectrum, &search, guide.as_ref()).map_err(|e| {
         Error::PatternNotFound(match e {
             lobes::LobeError::NoFirstPeak { power, prominence } => format!(
                 "no spectral lobe (strongest: power {power:.2e}, prominence {prominence:.1}; need > {:.1e} and ≥ {})",
