@@ -3,8 +3,8 @@
 //! (`sensor_msgs/Image` and the `rcl_interfaces` parameter-service requests), each followed by
 //! the code that uses the decoded value. Nothing may panic.
 //!
-//! `cargo test` runs each for a fixed number of cases with a fixed seed; a longer run:
-//! `VERNIER_FUZZ_CASES=100000 VERNIER_FUZZ_SEED=7 cargo test --release -p vernier_ros fuzz`.
+//! `cargo test` runs each for a fixed number of cases with a fixed seed; a longer run of all
+//! harnesses: `bash scripts/fuzz_long.sh [CASES] [SEED]`.
 
 use std::sync::Mutex;
 

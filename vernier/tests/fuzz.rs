@@ -5,6 +5,7 @@
 //! inputs on every run, a few seconds in all). A longer run is one command:
 //!
 //! ```sh
+//! bash scripts/fuzz_long.sh 100000 7   # this file and the node's harnesses
 //! VERNIER_FUZZ_CASES=100000 VERNIER_FUZZ_SEED=7 cargo test --release -p vernier --test fuzz
 //! ```
 //!
