@@ -268,3 +268,28 @@ fn full_disks_are_write_errors() {
     let pattern = Pattern::Periodic(PeriodicLayout::new(15.0, 3, 3).unwrap());
     assert!(pattern.save("/dev/full").is_err());
 }
+
+#[test]
+fn export_estimates_bound_the_real_size() {
+    use vernier::export::{estimate_bytes, export_bytes, ExportFormat};
+    let mut files: Vec<PathBuf> = std::fs::read_dir(common::data_dir().join("patterns"))
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .collect();
+    files.push(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../examples/periodic_p15.json"));
+    for file in files {
+        let pattern = Pattern::from_file(&file).unwrap();
+        for format in ExportFormat::ALL {
+            let Ok(bytes) = export_bytes(&pattern, format) else {
+                continue;
+            };
+            let estimate = estimate_bytes(&pattern, format);
+            assert!(
+                estimate >= bytes.len() as f64,
+                "{} {format:?}: {} bytes, estimate {estimate}",
+                file.display(),
+                bytes.len()
+            );
+        }
+    }
+}
