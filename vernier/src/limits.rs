@@ -178,16 +178,26 @@ pub fn check_window_size(value: usize) -> Result<usize> {
 }
 
 /// Checks that a window of `window` pixels fits an image of `width × height` pixels along at
-/// least one side (a larger window holds no more of the image, only fill).
+/// least one side, and covers at most [`MAX_WINDOW_AREA_RATIO`] times the image's pixels (a
+/// larger window holds no more of the image, only fill, and its memory is unbounded by the
+/// image's).
 pub fn check_window_fits(window: usize, width: usize, height: usize) -> Result<()> {
-    if window > width.max(height) {
+    let area = (window as u64).saturating_mul(window as u64);
+    let pixels = (width as u64).saturating_mul(height as u64);
+    if window > width.max(height) || area > pixels.saturating_mul(MAX_WINDOW_AREA_RATIO) {
         return Err(Error::parameter(
             "window_size",
-            format!("{window} pixels is larger than the {width}×{height} image"),
+            format!(
+                "{window} pixels is larger than the {width}×{height} image (at most its larger \
+                 side and {MAX_WINDOW_AREA_RATIO} times its area)"
+            ),
         ));
     }
     Ok(())
 }
+
+/// Largest window area, in multiples of the image's pixel count.
+pub const MAX_WINDOW_AREA_RATIO: u64 = 4;
 
 /// Checks a quality threshold (`name`): in `[0, 1]`.
 pub fn check_quality(name: &'static str, value: f64) -> Result<f64> {
@@ -411,6 +421,8 @@ mod tests {
         );
         assert!(check_window_fits(820, 1655, 762).is_ok());
         assert!(check_window_fits(2000, 1655, 762).is_err());
+        // A long strip: the window fits its length but would be 11 times its area.
+        assert!(check_window_fits(32_768, 32_768, 3_000).is_err());
     }
 
     #[test]
