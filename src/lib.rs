@@ -6,6 +6,8 @@
 //! [`messages`] (wire types), [`ros_args`] (`--ros-args`), [`params`] (parameters),
 //! [`param_services`] (`ros2 param`), [`processing`] (one frame → output messages), [`diagnostics`] and [`node`] (DDS wiring).
 pub mod diagnostics;
+#[cfg(test)]
+mod fuzz_tests;
 pub mod messages;
 pub mod node;
 pub mod param_services;

@@ -9,7 +9,7 @@ use ros2_client::ParameterValue;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use vernier::detector::{DetectorConfig, DetectorSettings, MarkerKind};
-use vernier::Detector;
+use vernier::{limits, Detector};
 
 /// One declared parameter.
 #[derive(Clone, Debug)]
@@ -111,6 +111,11 @@ pub fn specs() -> Vec<ParamSpec> {
             V::Double(0.0),
             "Highest processing rate, Hz; frames arriving faster are skipped; 0 = no limit.",
         ),
+        spec(
+            "max_image_pixels",
+            V::Integer(vernier::limits::DEFAULT_MAX_PIXELS as i64),
+            "Largest image processed, pixels (width × height); larger frames are rejected as bad images.",
+        ),
     ]
 }
 
@@ -147,6 +152,8 @@ pub struct NodeParams {
     pub publish_tf: bool,
     /// Processing rate cap, Hz (0 = none).
     pub max_rate: f64,
+    /// Largest image processed, pixels.
+    pub max_image_pixels: u64,
 }
 
 impl NodeParams {
@@ -233,10 +240,10 @@ impl NodeParams {
             .map_err(|e: vernier::Error| e.to_string())?;
         let pattern_file = string("pattern_file")?;
         let period = double("period")?;
-        if period < 0.0 {
-            return Err(format!(
-                "`period` must be > 0 (or 0 = from the pattern file), got {period}"
-            ));
+        if period != 0.0 {
+            // 0 = from the pattern file; any other value must be in the shared range.
+            limits::check_period(period)
+                .map_err(|e| format!("{e} (or 0 = from the pattern file)"))?;
         }
         let unit = string("period_unit")?;
         let metres_per_unit = UNITS
@@ -244,9 +251,21 @@ impl NodeParams {
             .find(|(name, _)| *name == unit)
             .map(|(_, m)| *m)
             .ok_or_else(|| format!("`period_unit` must be nm, um, mm or m, got `{unit}`"))?;
-        let code_size = optional_count("code_size", 5, 1001)?;
-        let code_depth = optional_count("code_depth", 4, 12)?;
-        let window_size = optional_count("window_size", 8, 1 << 15)?;
+        let code_size = optional_count(
+            "code_size",
+            limits::MIN_CODE_SIZE as i64,
+            limits::MAX_CODE_SIZE as i64,
+        )?;
+        let code_depth = optional_count(
+            "code_depth",
+            limits::MIN_CODE_DEPTH as i64,
+            limits::MAX_CODE_DEPTH as i64,
+        )?;
+        let window_size = optional_count(
+            "window_size",
+            limits::MIN_WINDOW_SIZE as i64,
+            limits::MAX_WINDOW_SIZE as i64,
+        )?;
         let polarity =
             vernier::parse_polarity_setting(&string("polarity")?).map_err(|e| e.to_string())?;
         let bitmaps = strings("bitmaps")?;
@@ -263,26 +282,21 @@ impl NodeParams {
         };
         let relative_pairs = strings("relative_pairs")?
             .iter()
-            .map(|pair| parse_pair(pair))
+            .map(|pair| limits::parse_relative_pair(pair))
             .collect::<Result<Vec<_>, String>>()?;
-        let min_quality = double("min_quality")?;
-        if !(0.0..=1.0).contains(&min_quality) {
-            return Err(format!(
-                "`min_quality` must be in [0, 1], got {min_quality}"
-            ));
-        }
+        let min_quality = limits::check_quality("min_quality", double("min_quality")?)
+            .map_err(|e| e.to_string())?;
         let camera_frame = string("camera_frame")?;
         let marker_frame_prefix = string("marker_frame_prefix")?;
         let publish_tf = match get("publish_tf") {
             ParameterValue::Boolean(b) => b,
             other => return Err(format!("`publish_tf` must be a bool, got {other:?}")),
         };
-        let max_rate = double("max_rate")?;
-        if max_rate < 0.0 {
-            return Err(format!(
-                "`max_rate` must be ≥ 0 Hz (0 = no limit), got {max_rate}"
-            ));
-        }
+        let max_rate =
+            limits::check_rate("max_rate", double("max_rate")?).map_err(|e| e.to_string())?;
+        let max_image_pixels = u64::try_from(integer("max_image_pixels")?)
+            .map_err(|_| "`max_image_pixels` must be ≥ 1 pixel".to_string())
+            .and_then(|v| limits::check_max_pixels(v).map_err(|e| e.to_string()))?;
 
         let settings = DetectorSettings {
             pattern_type,
@@ -305,26 +319,13 @@ impl NodeParams {
             marker_frame_prefix,
             publish_tf,
             max_rate,
+            max_image_pixels,
         };
         // The whole configuration must make a detector (period given, pattern file readable,
         // marker type implemented...).
         params.build_detector()?;
         Ok(params)
     }
-}
-
-/// `"a:b"` → `(a, b)`.
-fn parse_pair(text: &str) -> Result<(u64, u64), String> {
-    let bad = || format!("`relative_pairs`: expected \"a:b\" with marker ids, got `{text}`");
-    let (a, b) = text.split_once(':').ok_or_else(bad)?;
-    let a: u64 = a.trim().parse().map_err(|_| bad())?;
-    let b: u64 = b.trim().parse().map_err(|_| bad())?;
-    if a == b {
-        return Err(format!(
-            "`relative_pairs`: `{text}` pairs a marker with itself"
-        ));
-    }
-    Ok((a, b))
 }
 
 /// `value` converted to the declared type where that loses nothing (integer → double, an
@@ -370,6 +371,29 @@ mod tests {
         assert_eq!(p.metres_per_unit, 1e-6);
         assert!(p.tracks(12));
         assert!(p.publish_tf);
+    }
+
+    #[test]
+    fn the_parameter_file_documents_every_parameter() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("params/detector.yaml");
+        let text = std::fs::read_to_string(path).unwrap_or_default();
+        let values = crate::ros_args::parse_params_file(&text, "/", "vernier_detector")
+            .unwrap_or_else(|e| panic!("{e}"));
+        let mut names: Vec<&str> = values.iter().map(|(n, _)| n.as_str()).collect();
+        // Empty-list defaults cannot be written in ROS parameter files: they are commented.
+        names.extend(["bitmaps", "relative_pairs"]);
+        names.sort_unstable();
+        let mut declared: Vec<&str> = specs().iter().map(|s| s.name).collect();
+        declared.sort_unstable();
+        assert_eq!(names, declared);
+        NodeParams::from_overrides(&values).unwrap_or_else(|e| panic!("{e}"));
+    }
+
+    #[test]
+    fn the_core_crate_lists_every_parameter() {
+        // `vernier bag --params` accepts exactly these names (vernier::limits).
+        let names: Vec<&str> = specs().iter().map(|s| s.name).collect();
+        assert_eq!(names, limits::NODE_PARAMETERS);
     }
 
     #[test]
@@ -425,6 +449,19 @@ mod tests {
             ("min_quality", ParameterValue::Double(1.5), "min_quality"),
             ("max_rate", ParameterValue::Double(-2.0), "max_rate"),
             ("code_depth", ParameterValue::Integer(40), "code_depth"),
+            ("period", ParameterValue::Double(5e-324), "period"),
+            ("code_size", ParameterValue::Integer(1_000_001), "code_size"),
+            (
+                "window_size",
+                ParameterValue::Integer(4_294_967_295),
+                "window_size",
+            ),
+            ("max_rate", ParameterValue::Double(1e300), "max_rate"),
+            (
+                "max_image_pixels",
+                ParameterValue::Integer(0),
+                "max_image_pixels",
+            ),
             (
                 "pattern_file",
                 ParameterValue::String("/nonexistent.json".into()),

@@ -131,6 +131,12 @@ impl Processor {
     /// Processes one image message. `Err` means the message itself is bad; a valid image
     /// without markers gives an empty marker array and `detect_error`.
     pub fn process(&mut self, msg: &Image) -> Result<(FrameOutput, GreyImage), BadImage> {
+        vernier::limits::check_image_pixels(
+            u64::from(msg.width),
+            u64::from(msg.height),
+            self.params.max_image_pixels,
+        )
+        .map_err(|e| BadImage(e.to_string()))?;
         let grey = to_grey(msg)?;
         let found = self.detector.detect(&grey);
         let (mut markers, detect_error) = match found {

@@ -10,7 +10,7 @@
 
 use ros2_client::ParameterValue;
 use std::path::PathBuf;
-use yaml_rust2::{Yaml, YamlLoader};
+use yaml_rust2::Yaml;
 
 /// A topic remapping rule `[node:]from:=to`.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -180,12 +180,12 @@ impl RosArgs {
     ) -> Result<Vec<(String, ParameterValue)>, ArgsError> {
         let mut out = Vec::new();
         for path in &self.params_files {
-            let text = std::fs::read_to_string(path).map_err(|e| {
-                ArgsError(format!(
-                    "cannot read parameter file {}: {e}",
-                    path.display()
-                ))
-            })?;
+            let text = vernier::limits::read_text_bounded(
+                path,
+                vernier::limits::MAX_PARAM_FILE_BYTES,
+                "parameter file",
+            )
+            .map_err(|e| ArgsError(format!("cannot read parameter file {e}")))?;
             out.extend(
                 parse_params_file(&text, namespace, node)
                     .map_err(|e| ArgsError(format!("{}: {}", path.display(), e.0)))?,
@@ -214,7 +214,7 @@ fn parse_param_assignment(
     if name.is_empty() {
         return err(format!("parameter `{text}` has no name"));
     }
-    let docs = YamlLoader::load_from_str(value)
+    let docs = vernier::limits::load_yaml(value)
         .map_err(|e| ArgsError(format!("parameter `{name}`: {e}")))?;
     let value = match docs.first() {
         Some(doc) => {
@@ -286,7 +286,7 @@ pub fn parse_params_file(
     namespace: &str,
     node: &str,
 ) -> Result<Vec<(String, ParameterValue)>, ArgsError> {
-    let docs = YamlLoader::load_from_str(text).map_err(|e| ArgsError(e.to_string()))?;
+    let docs = vernier::limits::load_yaml(text).map_err(ArgsError)?;
     let fq_node = fully_qualified(namespace, node);
     let mut out = Vec::new();
     for doc in &docs {
@@ -599,5 +599,21 @@ other_node:
             .unwrap_or_default()
             .parameter_overrides("/", "vernier");
         assert!(missing.is_err());
+    }
+
+    #[test]
+    fn yaml_bombs_are_refused() {
+        let mut bomb =
+            String::from("/**:\n  ros__parameters:\n    a0: &a0 [x, x, x, x, x, x, x, x, x, x]\n");
+        for i in 1..12 {
+            let refs = vec![format!("*a{}", i - 1); 10].join(", ");
+            bomb.push_str(&format!("    a{i}: &a{i} [{refs}]\n"));
+        }
+        let e = parse_params_file(&bomb, "/", "vernier")
+            .err()
+            .unwrap_or(ArgsError(String::new()));
+        assert!(e.0.contains("nodes"), "{e}");
+        let deep = format!("period:={}{}", "[".repeat(500), "]".repeat(500));
+        assert!(parse(&["--ros-args", "-p", &deep]).is_err());
     }
 }

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Instant, UNIX_EPOCH};
 
 use indicatif::{ProgressBar, ProgressStyle};
-use vernier::{Detector, GreyImage};
+use vernier::{DecodeLimits, Detector, GreyImage};
 
 use crate::pose_table::{PoseRow, TableFormat, TableWriter};
 use crate::rerun_log::{FrameLog, RerunLog};
@@ -37,10 +37,12 @@ fn modified_seconds(path: &Path) -> Option<f64> {
 
 /// Detects markers in every image, in order; each image is frame `i` of the series. Returns
 /// the number of images that failed (each reported on stderr, and as a row with `error`).
-/// With `rerun`, every readable image and its result are also logged there.
+/// With `rerun`, every readable image and its result are also logged there. Images above
+/// `limits` are failures (decoded only after their header passed).
 pub fn detect_files(
     detector: &mut Detector,
     images: &[PathBuf],
+    limits: &DecodeLimits,
     format: TableFormat,
     mut rerun: Option<&mut RerunLog>,
 ) -> Result<usize, String> {
@@ -51,7 +53,7 @@ pub fn detect_files(
     let mut failures = 0;
     for (frame, path) in images.iter().enumerate() {
         let start = Instant::now();
-        let image = GreyImage::open(path).map_err(|e| e.to_string());
+        let image = GreyImage::open_with_limits(path, limits).map_err(|e| e.to_string());
         let result = image
             .as_ref()
             .map_err(Clone::clone)

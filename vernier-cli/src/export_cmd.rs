@@ -25,9 +25,31 @@ pub struct ExportArgs {
     /// replaces the file's `regionOfInterest` (MegarenaPattern only).
     #[arg(long, allow_hyphen_values = true)]
     roi: Option<String>,
+    /// Write the file even when its estimated size is above the export limit (512 MiB).
+    #[arg(long)]
+    force: bool,
     /// Output file; the format's extension (.png, .svg, .gds, .oas) is appended when the
     /// name has none.
     output: PathBuf,
+}
+
+/// Exports drawing more rectangles than this show a progress bar.
+const PROGRESS_MIN_RECTS: f64 = 1e6;
+
+/// `bytes` for messages: `1.9 GB`, `512 MiB`-style binary units.
+fn human_bytes(bytes: f64) -> String {
+    let units = ["bytes", "KiB", "MiB", "GiB", "TiB", "PiB", "EiB"];
+    let mut value = bytes;
+    let mut unit = 0;
+    while value >= 1024.0 && unit + 1 < units.len() {
+        value /= 1024.0;
+        unit += 1;
+    }
+    if value.is_finite() {
+        format!("{value:.1} {}", units[unit]).replace(".0 ", " ")
+    } else {
+        "an unbounded size".into()
+    }
 }
 
 /// Chooses the format and the final file name: `--format` wins, else the extension; an
@@ -93,8 +115,38 @@ pub fn run(args: &ExportArgs) -> Result<ExitCode, String> {
             }
         };
     }
-    let bytes = export_bytes(&pattern, format).map_err(|e| e.to_string())?;
-    std::fs::write(&path, &bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+    // Estimate first (from the frame alone): a huge region is refused before any work.
+    let estimate = vernier::export::estimate_bytes(&pattern, format);
+    let limit = vernier::limits::DEFAULT_MAX_EXPORT_BYTES;
+    if estimate > limit as f64 && !args.force {
+        return Err(format!(
+            "the {} export would be about {}, above the export limit of {}: give --force to \
+             write it anyway (or a smaller --roi)",
+            format.extension(),
+            human_bytes(estimate),
+            human_bytes(limit as f64)
+        ));
+    }
+    let path_error = |e: std::io::Error| format!("{}: {e}", path.display());
+    if format == ExportFormat::Svg {
+        // Streamed to the file with a progress bar (bytes written vs the estimate).
+        let file = std::fs::File::create(&path).map_err(path_error)?;
+        let mut out = std::io::BufWriter::new(file);
+        let rects = vernier::export::estimate_rects(&pattern);
+        let progress = if rects > PROGRESS_MIN_RECTS {
+            crate::batch::progress_bar(rects as u64, "rectangles")
+        } else {
+            indicatif::ProgressBar::hidden()
+        };
+        vernier::export::write_svg_to(&pattern, &mut out, &mut |n| progress.set_position(n))
+            .map_err(path_error)?;
+        progress.finish_and_clear();
+        let file = out.into_inner().map_err(|e| path_error(e.into_error()))?;
+        vernier::output::sync(&file).map_err(path_error)?;
+    } else {
+        let bytes = export_bytes(&pattern, format).map_err(|e| e.to_string())?;
+        vernier::output::write_file(&path, &bytes).map_err(path_error)?;
+    }
     println!("{}", path.display());
     Ok(ExitCode::SUCCESS)
 }

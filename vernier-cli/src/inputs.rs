@@ -1,6 +1,7 @@
 //! Expansion of the image arguments of `vernier detect`: files, folders and glob patterns.
 
 use std::cmp::Ordering;
+use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 /// Extensions (lower case) of the image files picked from folders and globs.
@@ -62,21 +63,25 @@ fn is_glob(text: &str) -> bool {
 /// pattern (`*`, `?`, `[...]`, `**` for any depth; quote it so that the shell leaves it
 /// alone) its matching image files, each sorted in natural order; any other argument is
 /// taken as one file, whatever its extension. A folder or pattern without image is an error.
+///
+/// Files found in folders and by patterns are deduplicated by canonical path (a file reached
+/// through a symlink, or by two patterns, is measured once), and `**` enters every directory
+/// at most once, so directory symlink loops are never followed round.
 pub fn expand_inputs(args: &[PathBuf]) -> Result<Vec<PathBuf>, String> {
     let mut out = Vec::new();
+    let mut seen: HashSet<PathBuf> = HashSet::new();
     for arg in args {
         let text = arg.to_string_lossy();
-        let mut found: Vec<PathBuf> = if arg.is_dir() {
+        let found: Vec<PathBuf> = if arg.is_dir() {
             std::fs::read_dir(arg)
                 .map_err(|e| format!("{}: {e}", arg.display()))?
                 .filter_map(|entry| entry.ok().map(|e| e.path()))
                 .filter(|p| p.is_file() && is_image(p))
                 .collect()
         } else if is_glob(&text) && !arg.exists() {
-            glob::glob(&text)
-                .map_err(|e| format!("bad pattern `{text}`: {e}"))?
-                .filter_map(|entry| entry.ok())
-                .filter(|p| p.is_file() && is_image(p))
+            glob_files(&text)?
+                .into_iter()
+                .filter(|p| is_image(p))
                 .collect()
         } else {
             out.push(arg.clone());
@@ -88,10 +93,110 @@ pub fn expand_inputs(args: &[PathBuf]) -> Result<Vec<PathBuf>, String> {
                 IMAGE_EXTENSIONS.join(", ")
             ));
         }
+        let mut found: Vec<PathBuf> = found
+            .into_iter()
+            .filter(|p| seen.insert(std::fs::canonicalize(p).unwrap_or_else(|_| p.clone())))
+            .collect();
         sort_naturally(&mut found);
         out.append(&mut found);
     }
     Ok(out)
+}
+
+/// One component of a glob pattern: `**` (any number of directories) or a name pattern.
+enum GlobPart {
+    AnyDepth,
+    Name(glob::Pattern),
+}
+
+/// The files matching a glob pattern. The literal leading directories are taken as they are;
+/// each directory is read at most once per pattern component (by canonical path), so
+/// symlink loops end and overlapping `**` never multiplies the work.
+fn glob_files(pattern: &str) -> Result<Vec<PathBuf>, String> {
+    let bad = |e: glob::PatternError| format!("bad pattern `{pattern}`: {e}");
+    let mut base = PathBuf::new();
+    let mut parts = Vec::new();
+    for component in Path::new(pattern).components() {
+        let text = component.as_os_str().to_string_lossy();
+        if parts.is_empty() && !is_glob(&text) && text != "**" {
+            base.push(component);
+        } else if text == "**" {
+            parts.push(GlobPart::AnyDepth);
+        } else {
+            parts.push(GlobPart::Name(glob::Pattern::new(&text).map_err(bad)?));
+        }
+    }
+    if matches!(parts.last(), Some(GlobPart::AnyDepth)) {
+        parts.push(GlobPart::Name(glob::Pattern::new("*").map_err(bad)?));
+    }
+    let mut walk = GlobWalk {
+        parts: &parts,
+        visited: HashSet::new(),
+        found: Vec::new(),
+    };
+    walk.visit(&base, 0);
+    Ok(walk.found)
+}
+
+struct GlobWalk<'a> {
+    parts: &'a [GlobPart],
+    /// (canonical directory, pattern component) pairs already read.
+    visited: HashSet<(PathBuf, usize)>,
+    found: Vec<PathBuf>,
+}
+
+impl GlobWalk<'_> {
+    /// Matches `parts[index..]` below `dir` (`""` = the current directory).
+    fn visit(&mut self, dir: &Path, index: usize) {
+        let Some(part) = self.parts.get(index) else {
+            return;
+        };
+        let listed = if dir.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            dir
+        };
+        let canonical = std::fs::canonicalize(listed).unwrap_or_else(|_| listed.to_path_buf());
+        if !self.visited.insert((canonical, index)) {
+            return;
+        }
+        let Ok(entries) = std::fs::read_dir(listed) else {
+            return;
+        };
+        let mut names: Vec<std::ffi::OsString> = entries
+            .filter_map(|e| e.ok().map(|e| e.file_name()))
+            .collect();
+        names.sort();
+        match part {
+            GlobPart::AnyDepth => {
+                // Zero directories, then one more level.
+                self.visit(dir, index + 1);
+                for name in names {
+                    let path = dir.join(&name);
+                    if path.is_dir() {
+                        self.visit(&path, index);
+                    }
+                }
+            }
+            GlobPart::Name(pattern) => {
+                let last = index + 1 == self.parts.len();
+                for name in names {
+                    let text = name.to_string_lossy();
+                    if !pattern.matches(&text) {
+                        continue;
+                    }
+                    let path = dir.join(&name);
+                    if last {
+                        if path.is_file() {
+                            self.found.push(path);
+                        }
+                    } else if path.is_dir() {
+                        self.visit(&path, index + 1);
+                    }
+                }
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -139,6 +244,27 @@ mod tests {
         assert_eq!(plain, [dir.join("notes.txt")], "explicit files are kept");
         let e = expand_inputs(&[dir.join("*.tif")]).unwrap_err();
         assert!(e.contains("no image"), "{e}");
+        let middle = expand_inputs(&[dir.join("s*/*.jpg")]).unwrap();
+        assert_eq!(middle, [dir.join("sub/f1.jpg")]);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn symlink_loops_and_duplicates_are_not_followed_round() {
+        let dir = std::env::temp_dir().join(format!("vernier_loops_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("a/b")).unwrap();
+        std::fs::write(dir.join("a/b/img.png"), b"x").unwrap();
+        // Two loops back to the top, and a second name of the image.
+        std::os::unix::fs::symlink(&dir, dir.join("a/b/up")).unwrap();
+        std::os::unix::fs::symlink(dir.join("a"), dir.join("a/b/again")).unwrap();
+        std::os::unix::fs::symlink(dir.join("a/b/img.png"), dir.join("a/alias.png")).unwrap();
+        let found = expand_inputs(&[dir.join("**/*.png")]).unwrap();
+        assert_eq!(found.len(), 1, "{found:?}");
+        // Across arguments too: a folder then a pattern reaching the same file.
+        let both = expand_inputs(&[dir.join("a/b"), dir.join("**/img.png")]).unwrap();
+        assert_eq!(both, [dir.join("a/b/img.png")]);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

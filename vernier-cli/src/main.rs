@@ -69,9 +69,14 @@ struct DetectArgs {
     /// Megarena LFSR bit depth (4–12).
     #[arg(long)]
     code_depth: Option<u32>,
-    /// Side of the window analysed around each marker, pixels.
+    /// Side of the window analysed around each marker, pixels (8–32768, at most the
+    /// image's larger side).
     #[arg(long)]
     window_size: Option<usize>,
+    /// Largest image read, pixels (`100M`, `2.5G`, `4000000`): a larger image (by its
+    /// header, before decoding) is an error naming this limit. Default 100M.
+    #[arg(long, value_parser = parse_max_pixels, default_value = "100M")]
+    max_pixels: u64,
     /// Stamp bitmap PNG files (1 = dot), in ID order; repeat the flag for several.
     #[arg(long)]
     bitmap: Vec<PathBuf>,
@@ -198,7 +203,9 @@ fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
         )?),
         None => None,
     };
-    let failures = batch::detect_files(&mut detector, &images, args.format, rerun.as_mut())?;
+    let limits = vernier::DecodeLimits::with_max_pixels(args.max_pixels);
+    let failures =
+        batch::detect_files(&mut detector, &images, &limits, args.format, rerun.as_mut())?;
     if let Some(rerun) = rerun {
         rerun.finish()?;
     }
@@ -231,15 +238,22 @@ fn render_image(args: &RenderArgs) -> Result<ExitCode, String> {
     let pattern = load_pattern(&args.pattern)?;
     let pose = parse_numbers(&args.pose, "pose", ',', 3)?;
     let size = parse_numbers(&args.size, "size", 'x', 2)?;
-    if size
-        .iter()
-        .any(|&v| v < 1.0 || v.fract() != 0.0 || v > 65536.0)
-    {
+    let max_side = vernier::limits::MAX_RENDER_SIDE as f64;
+    if size.iter().any(|&v| v < 1.0 || v.fract() != 0.0) {
         return Err(format!(
             "--size expects positive integers WIDTHxHEIGHT, got `{}`",
             args.size
         ));
     }
+    let pixels = size[0] * size[1];
+    if size.iter().any(|&v| v > max_side) || pixels > vernier::limits::MAX_RENDER_PIXELS as f64 {
+        return Err(format!(
+            "--size {} is above the render limit of {max_side} pixels per side and {}",
+            args.size,
+            vernier::limits::megapixels(vernier::limits::MAX_RENDER_PIXELS)
+        ));
+    }
+    vernier::limits::check_pixel_size(args.pixel_size).map_err(|e| e.to_string())?;
     if ![8, 12, 16].contains(&args.bits) {
         return Err(format!("--bits must be 8, 12 or 16, got {}", args.bits));
     }
@@ -257,6 +271,11 @@ fn render_image(args: &RenderArgs) -> Result<ExitCode, String> {
         .save_png(&args.output, args.bits)
         .map_err(|e| e.to_string())?;
     Ok(ExitCode::SUCCESS)
+}
+
+/// `--max-pixels`: a pixel count (`100M`, `4000000`), at least 1.
+fn parse_max_pixels(text: &str) -> Result<u64, String> {
+    vernier::limits::parse_pixel_count(text)
 }
 
 /// `--polarity auto|bright|dark` (`auto` = `None`).

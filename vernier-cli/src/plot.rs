@@ -174,6 +174,15 @@ pub fn run(args: &PlotArgs) -> Result<ExitCode, String> {
             );
         }
     }
+    let max = vernier::limits::MAX_RENDER_PIXELS;
+    if args.width == 0 || args.height == 0 || u64::from(args.width) * u64::from(args.height) > max {
+        return Err(format!(
+            "--width {} --height {}: the plot must have 1 to {} pixels",
+            args.width,
+            args.height,
+            vernier::limits::megapixels(max)
+        ));
+    }
     let mut pixels = vec![255u8; args.width as usize * args.height as usize * 3];
     draw(
         &all,
@@ -185,8 +194,12 @@ pub fn run(args: &PlotArgs) -> Result<ExitCode, String> {
     .map_err(|e| format!("cannot draw the plot: {e}"))?;
     let image = image::RgbImage::from_raw(args.width, args.height, pixels)
         .ok_or("internal error: plot buffer size")?;
+    // Encoded in memory, then written with every error checked (a full disk is an error).
+    let mut png = std::io::Cursor::new(Vec::new());
     image
-        .save_with_format(&args.output, image::ImageFormat::Png)
+        .write_to(&mut png, image::ImageFormat::Png)
+        .map_err(|e| format!("{}: {e}", args.output.display()))?;
+    vernier::output::write_file(&args.output, png.get_ref())
         .map_err(|e| format!("{}: {e}", args.output.display()))?;
     Ok(ExitCode::SUCCESS)
 }

@@ -115,8 +115,31 @@ pub struct DetectorSettings {
 }
 
 impl DetectorSettings {
+    /// Checks every value given against its range in [`crate::limits`], naming the first
+    /// invalid setting (values taken from a pattern file are checked when it is read).
+    pub fn validate(&self) -> Result<()> {
+        use crate::limits;
+        if let Some(period) = self.period {
+            limits::check_period(period)?;
+        }
+        if let Some(w) = self.code_size {
+            limits::check_code_size(w)?;
+        }
+        if let Some(depth) = self.code_depth {
+            limits::check_code_depth(depth)?;
+        }
+        if let Some(size) = self.window_size {
+            limits::check_window_size(size)?;
+        }
+        Ok(())
+    }
+
     /// Builds the detector configuration, naming the first missing or invalid setting.
+    ///
+    /// Every value is checked against its physical range in [`crate::limits`] (the same
+    /// checks as the CLI, pattern files and the ROS node), whichever marker type uses it.
     pub fn to_config(&self) -> Result<DetectorConfig> {
+        self.validate()?;
         let pattern = match &self.pattern_file {
             Some(path) => Some(Pattern::from_file(path)?),
             None => None,
@@ -259,7 +282,8 @@ impl Detector {
 
     /// Detects every marker in `image`. An image without any marker gives an empty list for
     /// marker types that search (HP code, stamp) and [`Error::PatternNotFound`] for the
-    /// full-image types (periodic, Megarena).
+    /// full-image types (periodic, Megarena). A `window_size` larger than the image is an
+    /// [`Error::InvalidParameter`], never an empty list.
     pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<MarkerPose>> {
         match &mut self.inner {
             Inner::Periodic(d) => {
@@ -287,6 +311,9 @@ impl Detector {
                 }])
             }
             Inner::Stamp(d) => {
+                if let Some(size) = d.params().window_size {
+                    crate::limits::check_window_fits(size, image.width(), image.height())?;
+                }
                 let mut markers: Vec<MarkerPose> = d
                     .detect(image)?
                     .into_iter()
@@ -304,6 +331,9 @@ impl Detector {
                 Ok(markers)
             }
             Inner::HpCode(d) => {
+                if let Some(size) = d.params().window_size {
+                    crate::limits::check_window_fits(size, image.width(), image.height())?;
+                }
                 let mut markers: Vec<MarkerPose> = d
                     .detect(image)?
                     .into_iter()

@@ -212,21 +212,30 @@ impl GreyImage {
         })
     }
 
-    /// Reads a PNG, JPEG, TIFF or PNM file (8/16-bit, grey, grey+alpha, RGB or RGBA).
+    /// Reads a PNG, JPEG, TIFF or PNM file (8/16-bit, grey, grey+alpha, RGB or RGBA) within
+    /// the default [`DecodeLimits`] (100 MP). See [`decode_image_file`] for the checks.
     pub fn open(path: impl AsRef<Path>) -> Result<Self> {
+        Self::open_with_limits(path, &DecodeLimits::default())
+    }
+
+    /// [`GreyImage::open`] with explicit limits (`--max-pixels`).
+    pub fn open_with_limits(path: impl AsRef<Path>, limits: &DecodeLimits) -> Result<Self> {
         let path = path.as_ref();
-        let read_err = |reason: String| Error::ImageRead {
+        let decoded = decode_image_file(path, limits)?;
+        Self::from_dynamic(&decoded).map_err(|e| Error::ImageRead {
             path: path.to_path_buf(),
-            reason,
-        };
-        let reader = image::ImageReader::open(path)
-            .map_err(|e| read_err(e.to_string()))?
-            .with_guessed_format()
-            .map_err(|e| read_err(e.to_string()))?;
-        let mut reader = reader;
-        reader.no_limits();
-        let decoded = reader.decode().map_err(|e| read_err(e.to_string()))?;
-        Self::from_dynamic(&decoded).map_err(|e| read_err(e.to_string()))
+            reason: e.to_string(),
+        })
+    }
+
+    /// Decodes an in-memory image file (the bytes of a PNG, JPEG, TIFF or PNM) within
+    /// `limits`; `name` labels the errors. The checks of [`decode_image_file`] apply.
+    pub fn decode_bytes(bytes: &[u8], name: &Path, limits: &DecodeLimits) -> Result<Self> {
+        let decoded = decode_image_bytes(bytes, name, limits)?;
+        Self::from_dynamic(&decoded).map_err(|e| Error::ImageRead {
+            path: name.to_path_buf(),
+            reason: e.to_string(),
+        })
     }
 
     /// Converts a decoded `image` crate picture.
@@ -326,7 +335,16 @@ impl GreyImage {
         fill: f32,
     ) -> Result<GreyImage> {
         check_size(width, height)?;
-        let mut pixels = vec![fill; width * height];
+        let count = width
+            .checked_mul(height)
+            .filter(|&n| n as u64 <= WINDOW_MAX_PIXELS)
+            .ok_or_else(|| {
+                Error::InvalidImage(format!(
+                    "window {width}×{height} is larger than the limit of {}",
+                    crate::limits::megapixels(WINDOW_MAX_PIXELS)
+                ))
+            })?;
+        let mut pixels = vec![fill; count];
         for r in 0..height {
             let src_r = row0 + r as i64;
             if src_r < 0 || src_r >= self.height as i64 {
@@ -440,29 +458,206 @@ impl GreyImage {
             path: path.to_path_buf(),
             reason,
         };
+        let bytes = self.encode_png(bits).map_err(write_err)?;
+        // Encoded in memory, then written and synced with every error checked (the `image`
+        // crate's `save` drops its buffered writer unflushed: a full disk went unnoticed).
+        crate::output::write_file(path, &bytes).map_err(|e| write_err(e.to_string()))
+    }
+
+    /// The PNG file [`GreyImage::save_png`] writes, in memory.
+    pub fn encode_png(&self, bits: u32) -> std::result::Result<Vec<u8>, String> {
+        use image::ImageEncoder;
         let (w, h) = (self.width as u32, self.height as u32);
+        let mut out = Vec::new();
+        let encoder = image::codecs::png::PngEncoder::new(&mut out);
         if bits <= 8 {
             let data: Vec<u8> = self
                 .quantized(bits)
                 .iter()
-                .map(|&v| (v as u32 * 255 / ((1 << bits) - 1)) as u8)
+                .map(|&v| (v as u32 * 255 / ((1 << bits.max(1)) - 1)) as u8)
                 .collect();
-            image::GrayImage::from_raw(w, h, data)
-                .ok_or_else(|| write_err("buffer size".into()))?
-                .save(path)
-                .map_err(|e| write_err(e.to_string()))
+            encoder
+                .write_image(&data, w, h, image::ExtendedColorType::L8)
+                .map_err(|e| e.to_string())?;
         } else {
             let levels = ((1u32 << bits.min(16)) - 1) as f64;
-            let data: Vec<u16> = self
+            let data: Vec<u8> = self
                 .quantized(bits)
                 .iter()
-                .map(|&v| (v as f64 * 65535.0 / levels).round() as u16)
+                .flat_map(|&v| ((v as f64 * 65535.0 / levels).round() as u16).to_ne_bytes())
                 .collect();
-            image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(w, h, data)
-                .ok_or_else(|| write_err("buffer size".into()))?
-                .save(path)
-                .map_err(|e| write_err(e.to_string()))
+            encoder
+                .write_image(&data, w, h, image::ExtendedColorType::L16)
+                .map_err(|e| e.to_string())?;
         }
+        Ok(out)
+    }
+}
+
+/// Largest window or crop [`GreyImage::window`] builds, pixels (a
+/// [`limits::MAX_WINDOW_SIZE`](crate::limits::MAX_WINDOW_SIZE) square).
+const WINDOW_MAX_PIXELS: u64 =
+    (crate::limits::MAX_WINDOW_SIZE as u64) * (crate::limits::MAX_WINDOW_SIZE as u64);
+
+/// Resource limits of an image decode.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct DecodeLimits {
+    /// Largest image accepted, pixels (`width × height`); default
+    /// [`limits::DEFAULT_MAX_PIXELS`](crate::limits::DEFAULT_MAX_PIXELS) (100 MP). The
+    /// decoder's allocation is bounded by 8 bytes per pixel of it.
+    pub max_pixels: u64,
+}
+
+impl Default for DecodeLimits {
+    fn default() -> Self {
+        DecodeLimits {
+            max_pixels: crate::limits::DEFAULT_MAX_PIXELS,
+        }
+    }
+}
+
+impl DecodeLimits {
+    /// Limits of at most `max_pixels` pixels.
+    pub fn with_max_pixels(max_pixels: u64) -> Self {
+        DecodeLimits { max_pixels }
+    }
+
+    fn max_alloc(&self) -> u64 {
+        self.max_pixels
+            .saturating_mul(crate::limits::MAX_DECODED_BYTES_PER_PIXEL)
+            .saturating_add(crate::limits::FILE_SIZE_SLACK)
+    }
+}
+
+/// Reads and decodes an image file (format from its content, else its extension) within
+/// `limits`: the file size, the header's dimensions (before any pixel is decoded, so a
+/// decompression bomb costs nothing) and the decoder's allocations are bounded, and truncated
+/// or corrupted files are rejected rather than decoded in part: a JPEG must end with its
+/// end-of-image marker, a PNG must pass every chunk CRC and end with `IEND`.
+pub fn decode_image_file(path: &Path, limits: &DecodeLimits) -> Result<image::DynamicImage> {
+    let read_err = |reason: String| Error::ImageRead {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let size = std::fs::metadata(path)
+        .map_err(|e| read_err(e.to_string()))?
+        .len();
+    if size > limits.max_alloc() {
+        return Err(read_err(format!(
+            "the file is {size} bytes, more than any image within --max-pixels / \
+             max_image_pixels {} could need",
+            crate::limits::megapixels(limits.max_pixels)
+        )));
+    }
+    let bytes = std::fs::read(path).map_err(|e| read_err(e.to_string()))?;
+    decode_image_bytes(&bytes, path, limits)
+}
+
+fn decode_image_bytes(
+    bytes: &[u8],
+    path: &Path,
+    limits: &DecodeLimits,
+) -> Result<image::DynamicImage> {
+    let read_err = |reason: String| Error::ImageRead {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let format = image::guess_format(bytes)
+        .or_else(|_| image::ImageFormat::from_path(path))
+        .map_err(|e| read_err(e.to_string()))?;
+    check_integrity(bytes, format).map_err(read_err)?;
+    let reader = |format| image::ImageReader::with_format(std::io::Cursor::new(bytes), format);
+    let (w, h) = match png_dimensions(bytes) {
+        // The PNG decoder refuses a huge header with a bare "Memory limit exceeded".
+        Some(dims) if format == image::ImageFormat::Png => dims,
+        _ => {
+            let mut probe = reader(format);
+            let mut probe_limits = image::Limits::default();
+            probe_limits.max_alloc = Some(limits.max_alloc());
+            probe.limits(probe_limits);
+            probe.into_dimensions().map_err(|e| match e {
+                image::ImageError::Limits(_) => read_err(format!(
+                    "the image header asks for more memory than --max-pixels / \
+                     max_image_pixels {} allows",
+                    crate::limits::megapixels(limits.max_pixels)
+                )),
+                other => read_err(other.to_string()),
+            })?
+        }
+    };
+    crate::limits::check_image_pixels(w as u64, h as u64, limits.max_pixels)
+        .map_err(|e| read_err(e.to_string().trim_start_matches("invalid image: ").into()))?;
+    let mut reader = reader(format);
+    let mut decode_limits = image::Limits::default();
+    decode_limits.max_alloc = Some(limits.max_alloc());
+    let side = u32::try_from(limits.max_pixels).unwrap_or(u32::MAX);
+    decode_limits.max_image_width = Some(side);
+    decode_limits.max_image_height = Some(side);
+    reader.limits(decode_limits);
+    reader.decode().map_err(|e| read_err(e.to_string()))
+}
+
+/// Structural checks that decoders skip: a partial file must not decode as a partial image.
+fn check_integrity(bytes: &[u8], format: image::ImageFormat) -> std::result::Result<(), String> {
+    match format {
+        image::ImageFormat::Jpeg => {
+            let end = bytes.iter().rposition(|&b| b != 0).map_or(0, |i| i + 1);
+            if end < 4 || bytes[end - 2..end] != [0xFF, 0xD9] {
+                return Err(
+                    "truncated JPEG: the file does not end with the end-of-image marker (FF D9)"
+                        .into(),
+                );
+            }
+            Ok(())
+        }
+        image::ImageFormat::Png => check_png_chunks(bytes),
+        _ => Ok(()),
+    }
+}
+
+/// Width and height of a PNG file's `IHDR` chunk (the first chunk).
+fn png_dimensions(bytes: &[u8]) -> Option<(u32, u32)> {
+    let ihdr = bytes.get(8..24)?;
+    if &ihdr[4..8] != b"IHDR" {
+        return None;
+    }
+    let be = |b: &[u8]| u32::from_be_bytes([b[0], b[1], b[2], b[3]]);
+    Some((be(&ihdr[8..12]), be(&ihdr[12..16])))
+}
+
+/// Walks the chunks of a PNG file: every CRC must match and the last chunk must be `IEND`.
+fn check_png_chunks(bytes: &[u8]) -> std::result::Result<(), String> {
+    let mut at = 8usize;
+    loop {
+        let Some(header) = bytes.get(at..at + 8) else {
+            return Err(format!(
+                "truncated PNG: the file ends at byte {} without an IEND chunk",
+                bytes.len()
+            ));
+        };
+        let length = u32::from_be_bytes([header[0], header[1], header[2], header[3]]) as usize;
+        let kind = &header[4..8];
+        let name = String::from_utf8_lossy(kind).into_owned();
+        let Some(end) = (at + 8)
+            .checked_add(length)
+            .filter(|&end| end.saturating_add(4) <= bytes.len())
+        else {
+            return Err(format!(
+                "truncated PNG: chunk `{name}` at byte {at} ({length} bytes) runs past the end \
+                 of the file"
+            ));
+        };
+        let stored = &bytes[end..end + 4];
+        let crc = crc32fast::hash(&bytes[at + 4..end]);
+        if crc.to_be_bytes() != stored {
+            return Err(format!(
+                "corrupted PNG: chunk `{name}` at byte {at} fails its CRC"
+            ));
+        }
+        if kind == b"IEND" {
+            return Ok(());
+        }
+        at = end + 4;
     }
 }
 

@@ -263,6 +263,12 @@ pub struct HpCodeDetector {
 impl HpCodeDetector {
     /// A detector with `params` (validated).
     pub fn new(params: HpCodeParams) -> Result<Self> {
+        // The shared physical ranges (vernier::limits) first, then the detector's own rules.
+        crate::limits::check_period(params.period)?;
+        crate::limits::check_code_size(params.half_periods)?;
+        if let Some(size) = params.window_size {
+            crate::limits::check_window_size(size)?;
+        }
         params.validate()?;
         Ok(HpCodeDetector {
             params,

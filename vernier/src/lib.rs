@@ -87,12 +87,14 @@
 pub mod binarize;
 pub mod error;
 pub mod layout;
+pub mod limits;
 pub use error::{Error, Result};
 pub mod grey_image;
 pub mod megarena_sequence;
+pub mod output;
 pub mod pattern_file;
 pub mod phase;
-pub use grey_image::{parse_polarity_setting, GreyImage, PixelFormat, Polarity};
+pub use grey_image::{parse_polarity_setting, DecodeLimits, GreyImage, PixelFormat, Polarity};
 pub use phase::{LobePrior, PhaseAnalysis, PhaseEngine, PhaseParams, PhasePlane, Refinement};
 pub mod pose;
 pub mod render;

@@ -87,6 +87,22 @@ impl Pattern {
     /// with the path.
     pub fn from_file(path: impl AsRef<Path>) -> Result<Self> {
         let path = path.as_ref();
+        let size = std::fs::metadata(path)
+            .map_err(|source| Error::Io {
+                path: path.to_path_buf(),
+                source,
+            })?
+            .len();
+        if size > crate::limits::MAX_PATTERN_FILE_BYTES {
+            return Err(Error::pattern(
+                "<file>",
+                format!(
+                    "{} is {size} bytes, above the limit of {} bytes for pattern files",
+                    path.display(),
+                    crate::limits::MAX_PATTERN_FILE_BYTES
+                ),
+            ));
+        }
         let text = std::fs::read_to_string(path).map_err(|source| Error::Io {
             path: path.to_path_buf(),
             source,
@@ -124,9 +140,11 @@ impl Pattern {
     /// Writes [`Pattern::to_json_string`] to `path`.
     pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
         let path = path.as_ref();
-        std::fs::write(path, self.to_json_string()).map_err(|source| Error::Io {
-            path: path.to_path_buf(),
-            source,
+        crate::output::write_file(path, self.to_json_string().as_bytes()).map_err(|source| {
+            Error::Io {
+                path: path.to_path_buf(),
+                source,
+            }
         })
     }
 
@@ -322,7 +340,15 @@ impl Fields<'_> {
     }
 
     fn required_f64(&self, key: &str) -> Result<f64> {
-        self.optional_f64(key)?.ok_or_else(|| missing(key))
+        let value = self.optional_f64(key)?.ok_or_else(|| missing(key))?;
+        if key == "period" {
+            // The one range of every period setting (CLI, node, pattern files).
+            crate::limits::check_period(value).map_err(|e| match e {
+                Error::InvalidParameter { reason, .. } => Error::pattern(key, reason),
+                other => other,
+            })?;
+        }
+        Ok(value)
     }
 
     fn optional_int(&self, key: &str) -> Result<Option<i64>> {

@@ -1,7 +1,7 @@
 //! Detector of plain periodic dot grids (docs/design.md#periodic): the pose modulo one period and
 //! the grid's 90° symmetry.
 
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::grey_image::{GreyImage, Polarity};
 use crate::phase::{PhaseAnalysis, PhaseEngine, PhaseParams};
 use crate::pose::Pose;
@@ -76,12 +76,7 @@ pub struct PeriodicDetector {
 impl PeriodicDetector {
     /// A detector with `params` (validated).
     pub fn new(params: PeriodicParams) -> Result<Self> {
-        if !(params.period.is_finite() && params.period > 0.0) {
-            return Err(Error::parameter(
-                "period",
-                format!("must be > 0, got {}", params.period),
-            ));
-        }
+        crate::limits::check_period(params.period)?;
         params.phase.validate()?;
         Ok(PeriodicDetector {
             params,

@@ -15,6 +15,7 @@
 use crate::error::{Error, Result};
 use crate::grey_image::GreyImage;
 use crate::layout::{Layout, Rect};
+use crate::limits;
 use crate::pose::Pose;
 use nalgebra::{Matrix2, Point2, Vector2};
 
@@ -82,6 +83,16 @@ pub fn render_scene(items: &[(&dyn Layout, Pose)], options: &RenderOptions) -> R
             format!("render size must be positive, got {w}x{h}"),
         ));
     }
+    let (max_side, max_pixels) = (limits::MAX_RENDER_SIDE, limits::MAX_RENDER_PIXELS);
+    if w > max_side || h > max_side || (w as u64).saturating_mul(h as u64) > max_pixels {
+        return Err(Error::parameter(
+            "size",
+            format!(
+                "render size {w}x{h} is above the limit of {max_side} pixels per side and {}",
+                limits::megapixels(max_pixels)
+            ),
+        ));
+    }
     if let Some(bits) = options.bit_depth {
         if !(1..=16).contains(&bits) {
             return Err(Error::parameter(
@@ -90,16 +101,37 @@ pub fn render_scene(items: &[(&dyn Layout, Pose)], options: &RenderOptions) -> R
             ));
         }
     }
-    if !(options.blur_sigma >= 0.0 && options.blur_sigma.is_finite()) {
+    if !(0.0..=limits::MAX_BLUR_SIGMA).contains(&options.blur_sigma) {
         return Err(Error::parameter(
             "blur_sigma",
-            format!("must be ≥ 0, got {}", options.blur_sigma),
+            format!(
+                "must be in [0, {}] pixels, got {}",
+                limits::MAX_BLUR_SIGMA,
+                options.blur_sigma
+            ),
         ));
     }
-    if !(options.noise_std >= 0.0 && options.noise_std.is_finite()) {
+    if !(0.0..=limits::MAX_NOISE_STD).contains(&options.noise_std) {
         return Err(Error::parameter(
             "noise_std",
-            format!("must be ≥ 0, got {}", options.noise_std),
+            format!(
+                "must be in [0, {}] (fraction of full scale), got {}",
+                limits::MAX_NOISE_STD,
+                options.noise_std
+            ),
+        ));
+    }
+    if options.blur_sigma > 0.0
+        && (w as u64 * h as u64).saturating_mul((SUPERSAMPLING * SUPERSAMPLING) as u64)
+            > MAX_FINE_SAMPLES
+    {
+        return Err(Error::parameter(
+            "blur_sigma",
+            format!(
+                "a blurred render is computed on a {SUPERSAMPLING}× finer grid: {w}x{h} is above \
+                 the limit of {} for blurred renders",
+                limits::megapixels(MAX_FINE_SAMPLES / (SUPERSAMPLING * SUPERSAMPLING) as u64)
+            ),
         ));
     }
     // Optical blur acts before the pixels integrate light: render on a grid `SUPERSAMPLING`
@@ -112,6 +144,20 @@ pub fn render_scene(items: &[(&dyn Layout, Pose)], options: &RenderOptions) -> R
     let (fw, fh) = (w * factor, h * factor);
     let mut coverage = vec![0.0f32; fw * fh];
     for (layout, pose) in items {
+        // A period far below a pixel only aliases, and the number of dots to draw explodes.
+        let period_px = layout.period() / pose.pixel_size;
+        if period_px.is_nan() || period_px < limits::MIN_RENDER_PERIOD_PX {
+            return Err(Error::parameter(
+                "pixel_size",
+                format!(
+                    "the period ({} pattern units) is {period_px:e} pixels at pixel size {}: \
+                                     renders need at least {} pixels per period",
+                    layout.period(),
+                    pose.pixel_size,
+                    limits::MIN_RENDER_PERIOD_PX
+                ),
+            ));
+        }
         // Same camera frame on the fine grid: centre pixel (C div 2, R div 2) maps to the centre
         // of the fine cell block of that pixel.
         let fine_pose = Pose {
@@ -159,6 +205,9 @@ pub fn render_scene(items: &[(&dyn Layout, Pose)], options: &RenderOptions) -> R
 /// Supersampling factor used when an optical blur is rendered.
 const SUPERSAMPLING: usize = 4;
 
+/// Largest supersampled grid of a blurred render, samples (800 MB of `f32`).
+const MAX_FINE_SAMPLES: u64 = 200_000_000;
+
 /// Mean of each `factor × factor` block of a `fine_w`-wide image, giving `w × h` pixels.
 fn bin(fine: &[f32], fine_w: usize, factor: usize, w: usize, h: usize) -> Vec<f32> {
     let mut out = vec![0.0f32; w * h];
@@ -192,6 +241,15 @@ fn render_layout(
         ));
     }
     // Orthographic projection pattern → pixel: pixel = A·p + t (columns 1, 2, 4 of cTp).
+    // Angles wrapped exactly into [−π, π) first: a huge angle (1e15 rad) draws the same image as
+    // its wrapped value, whichever trigonometric path the pose takes.
+    let wrap = crate::phase::wrap_angle;
+    let pose = &Pose {
+        alpha: wrap(pose.alpha),
+        beta: wrap(pose.beta),
+        gamma: wrap(pose.gamma),
+        ..*pose
+    };
     let t_cp = pose.camera_from_pattern().to_homogeneous();
     let s = 1.0 / pose.pixel_size;
     let a = Matrix2::new(

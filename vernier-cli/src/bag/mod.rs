@@ -52,6 +52,15 @@ pub struct BagArgs {
     /// Namespace of the output topics (the node's name).
     #[arg(long, default_value = "/vernier_detector")]
     namespace: String,
+    /// Exit non-zero when any frame was skipped (undecodable message, bad image, failed
+    /// detection, corrupted chunk). Without it, bad frames are skipped, counted and reported
+    /// on stderr, and the exit code is 0.
+    #[arg(long)]
+    strict: bool,
+    /// Largest image processed, pixels (`100M`, `4000000`); larger frames are skipped.
+    /// Default: the parameter file's `max_image_pixels`, else 100M.
+    #[arg(long, value_parser = vernier::limits::parse_pixel_count)]
+    max_pixels: Option<u64>,
 }
 
 /// The MCAP files of a recording, in order.
@@ -198,8 +207,14 @@ impl McapSink {
     fn finish(mut self) -> Result<(), String> {
         self.writer
             .finish()
-            .map(|_| ())
-            .map_err(|e| format!("cannot finish the output: {e}"))
+            .map_err(|e| format!("cannot finish the output: {e}"))?;
+        // Flush and sync with the errors checked (dropping the writer would lose them).
+        let file = self
+            .writer
+            .into_inner()
+            .into_inner()
+            .map_err(|e| format!("cannot write the output: {}", e.error()))?;
+        vernier::output::sync(&file).map_err(|e| format!("cannot write the output: {e}"))
     }
 }
 
@@ -221,6 +236,12 @@ impl Replay {
         let result = msg.as_ref().map_err(Clone::clone).and_then(|msg| {
             let format = PixelFormat::from_ros_encoding(&msg.encoding, msg.is_bigendian != 0)
                 .ok_or_else(|| format!("unsupported image encoding `{}`", msg.encoding))?;
+            vernier::limits::check_image_pixels(
+                u64::from(msg.width),
+                u64::from(msg.height),
+                self.params.max_pixels,
+            )
+            .map_err(|e| e.to_string())?;
             let grey = GreyImage::from_raw(
                 msg.width as usize,
                 msg.height as usize,
@@ -251,7 +272,7 @@ impl Replay {
             Err(_) => Header::default(),
         };
         if let Err(e) = &result {
-            eprintln!("vernier: {topic} message {}: {e}", self.frame);
+            eprintln!("vernier: {topic} message {}: skipped: {e}", self.frame);
             self.failures += 1;
         }
         match &mut self.sink {
@@ -310,6 +331,9 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
     if let Some(p) = args.period {
         params.settings.period = Some(p);
     }
+    if let Some(p) = args.max_pixels {
+        params.max_pixels = p;
+    }
     let config = params.settings.to_config().map_err(|e| e.to_string())?;
     let period = config.period();
     let detector = Detector::new(config).map_err(|e| e.to_string())?;
@@ -343,9 +367,9 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
         frame: 0,
         failures: 0,
     };
+    let mut corrupt = 0usize;
     for file in &files {
         let data = std::fs::read(file).map_err(|e| format!("{}: {e}", file.display()))?;
-        let bad = |e: mcap::McapError| format!("{}: {e}", file.display());
         let total = mcap::Summary::read(&data)
             .ok()
             .flatten()
@@ -358,8 +382,36 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
             })
             .unwrap_or(0);
         let progress = progress_bar(total, "frames");
-        for message in mcap::MessageStream::new(&data).map_err(bad)? {
-            let message = message.map_err(bad)?;
+        // Chunk CRCs are checked before any message of the chunk is used, so corrupted bytes
+        // never reach the detector; the reader stops at the first damaged record.
+        let options = mcap::sans_io::LinearReaderOptions::default()
+            .with_prevalidate_chunk_crcs(true)
+            .with_validate_data_section_crc(true);
+        let mut reader = mcap::sans_io::MessageReader::new_with_options(options);
+        let mut rest: &[u8] = &data;
+        while let Some(event) = reader.next_event() {
+            let message = match event {
+                Ok(mcap::sans_io::MessageReadEvent::ReadRequest(need)) => {
+                    let n = need.min(rest.len());
+                    reader.insert(n).copy_from_slice(&rest[..n]);
+                    reader.notify_read(n);
+                    rest = &rest[n..];
+                    continue;
+                }
+                Ok(mcap::sans_io::MessageReadEvent::Message(message)) => message,
+                Err(e) => {
+                    progress.suspend(|| {
+                        eprintln!(
+                            "vernier: {}: damaged after {} frames, the rest of the file is \
+                             skipped: {e}",
+                            file.display(),
+                            replay.frame
+                        )
+                    });
+                    corrupt += 1;
+                    break;
+                }
+            };
             let channel = &message.channel;
             if channel.topic != args.topic {
                 continue;
@@ -380,7 +432,7 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
         }
         progress.finish_and_clear();
     }
-    if replay.frame == 0 {
+    if replay.frame == 0 && corrupt == 0 {
         return Err(format!(
             "{}: no message on topic {}",
             args.input.display(),
@@ -393,9 +445,22 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
             .finish()
             .map_err(|e| format!("cannot write the output: {e}"))?,
     }
-    Ok(if replay.failures == 0 {
-        ExitCode::SUCCESS
-    } else {
+    let skipped = replay.failures + corrupt;
+    if skipped > 0 {
+        eprintln!(
+            "vernier: {} of {} frames skipped{}",
+            replay.failures,
+            replay.frame,
+            if corrupt > 0 {
+                format!(", {corrupt} damaged file(s) cut short")
+            } else {
+                String::new()
+            }
+        );
+    }
+    Ok(if skipped > 0 && args.strict {
         ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
     })
 }

@@ -3,13 +3,17 @@
 //!
 //! Only the parameters that change the measurement are used: `pattern_type`,
 //! `pattern_file`, `period`, `period_unit`, `code_size`, `code_depth`, `window_size`,
-//! `polarity`, `bitmaps`, `marker_ids`, `min_quality` and `camera_frame`; the others
-//! (topics, QoS, TF) are ignored. Zero / empty values mean "default", as in the node.
+//! `polarity`, `bitmaps`, `marker_ids`, `min_quality`, `camera_frame` and
+//! `max_image_pixels`; the others (TF, rate) are checked but do not change a replay. Zero /
+//! empty values mean "default", as in the node. Every value is validated with the node's
+//! ranges ([`vernier::limits`]), and a name the node does not declare is an error, so a file
+//! is accepted here exactly when the node accepts it. The YAML is read with the limits of
+//! [`vernier::limits::load_yaml`] (size, alias expansion, depth).
 
 use std::path::{Path, PathBuf};
 
 use vernier::detector::{DetectorSettings, MarkerKind};
-use yaml_rust2::{Yaml, YamlLoader};
+use yaml_rust2::Yaml;
 
 /// Settings of a replay.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -24,6 +28,8 @@ pub struct ReplayParams {
     pub min_quality: f64,
     /// `frame_id` of the outputs; empty = the image's.
     pub camera_frame: String,
+    /// Largest image processed, pixels (`max_image_pixels`).
+    pub max_pixels: u64,
 }
 
 impl ReplayParams {
@@ -31,6 +37,7 @@ impl ReplayParams {
     pub fn new() -> Self {
         ReplayParams {
             metres_per_unit: 1e-6,
+            max_pixels: vernier::limits::DEFAULT_MAX_PIXELS,
             ..ReplayParams::default()
         }
     }
@@ -60,19 +67,31 @@ fn parameters(doc: &Yaml) -> Option<&yaml_rust2::yaml::Hash> {
 /// Reads a parameter file. Relative `pattern_file` and `bitmaps` paths are taken relative to
 /// the current directory, as the node does.
 pub fn read_params(path: &Path) -> Result<ReplayParams, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let text = vernier::limits::read_text_bounded(
+        path,
+        vernier::limits::MAX_PARAM_FILE_BYTES,
+        "parameter file",
+    )?;
     parse_params(&text).map_err(|e| format!("{}: {e}", path.display()))
 }
 
 /// Parses parameter-file text.
 pub fn parse_params(text: &str) -> Result<ReplayParams, String> {
-    let docs = YamlLoader::load_from_str(text).map_err(|e| format!("bad YAML: {e}"))?;
+    let docs = vernier::limits::load_yaml(text).map_err(|e| format!("bad YAML: {e}"))?;
     let mut out = ReplayParams::new();
     let Some(params) = docs.first().and_then(parameters) else {
         return Ok(out);
     };
     for (key, value) in params {
-        let Some(name) = key.as_str() else { continue };
+        let Some(name) = key.as_str() else {
+            return Err(format!("parameter names must be strings, got {key:?}"));
+        };
+        if !vernier::limits::NODE_PARAMETERS.contains(&name) {
+            return Err(format!(
+                "unknown parameter `{name}` (the detector node declares: {})",
+                vernier::limits::NODE_PARAMETERS.join(", ")
+            ));
+        }
         let wrong =
             |expected: &str| format!("parameter `{name}` must be {expected}, got {value:?}");
         let number = || value.as_f64().or_else(|| value.as_i64().map(|v| v as f64));
@@ -140,14 +159,46 @@ pub fn parse_params(text: &str) -> Result<ReplayParams, String> {
                     .collect::<Result<_, _>>()?;
             }
             "min_quality" => {
-                out.min_quality = number().ok_or_else(|| wrong("a number"))?;
+                let v = number().ok_or_else(|| wrong("a number"))?;
+                out.min_quality =
+                    vernier::limits::check_quality("min_quality", v).map_err(|e| e.to_string())?;
             }
             "camera_frame" => {
                 out.camera_frame = value.as_str().ok_or_else(|| wrong("a string"))?.to_string();
             }
+            "marker_frame_prefix" => {
+                value.as_str().ok_or_else(|| wrong("a string"))?;
+            }
+            "publish_tf" => {
+                value.as_bool().ok_or_else(|| wrong("true or false"))?;
+            }
+            "max_rate" => {
+                let v = number().ok_or_else(|| wrong("a number"))?;
+                vernier::limits::check_rate("max_rate", v).map_err(|e| e.to_string())?;
+            }
+            "relative_pairs" => {
+                let list = value
+                    .as_vec()
+                    .ok_or_else(|| wrong("a list of \"a:b\" pairs"))?;
+                for pair in list {
+                    let text = pair
+                        .as_str()
+                        .ok_or_else(|| wrong("a list of \"a:b\" pairs"))?;
+                    vernier::limits::parse_relative_pair(text)?;
+                }
+            }
+            "max_image_pixels" => {
+                let v = value
+                    .as_i64()
+                    .and_then(|v| u64::try_from(v).ok())
+                    .ok_or_else(|| wrong("a pixel count ≥ 1"))?;
+                out.max_pixels = vernier::limits::check_max_pixels(v).map_err(|e| e.to_string())?;
+            }
+            // Every name of NODE_PARAMETERS is handled above.
             _ => {}
         }
     }
+    out.settings.validate().map_err(|e| e.to_string())?;
     Ok(out)
 }
 
@@ -182,12 +233,34 @@ mod tests {
         assert_eq!(flat.settings.period, Some(8.0));
         for bad in [
             "period: -1",
+            "period: 5e-324",
             "period_unit: inch",
             "code_size: x",
+            "code_size: 1000001",
+            "window_size: 4294967295",
             "marker_ids: [-1]",
+            "min_quality: 2",
+            "max_rate: -5",
+            "relative_pairs: ['1-2']",
+            "relative_pairs: ['1:1']",
+            "no_such_parameter: 1",
+            "max_image_pixels: 0",
         ] {
             let e = parse_params(bad).unwrap_err();
-            assert!(e.contains("parameter `"), "{bad}: {e}");
+            assert!(
+                e.contains("parameter `") || e.contains("relative_pairs"),
+                "{bad}: {e}"
+            );
         }
+        let p = parse_params("max_image_pixels: 1000\nmax_rate: 30\npublish_tf: false\n").unwrap();
+        assert_eq!(p.max_pixels, 1000);
+        // Billion laughs: refused before any alias is expanded.
+        let mut bomb = String::from("a0: &a0 [x, x, x, x, x, x, x, x, x, x]\n");
+        for i in 1..12 {
+            let refs = vec![format!("*a{}", i - 1); 10].join(", ");
+            bomb.push_str(&format!("a{i}: &a{i} [{refs}]\n"));
+        }
+        let e = parse_params(&bomb).unwrap_err();
+        assert!(e.contains("nodes"), "{e}");
     }
 }

@@ -25,7 +25,7 @@ use std::path::Path;
 
 pub use geometry::{dot_arrays, DbRect, DotArray, ExportFrame, DB_PER_UNIT};
 pub use png::{layout_image, write_png, MAX_PNG_PIXELS};
-pub use svg::write_svg;
+pub use svg::{write_svg, write_svg_to};
 
 use crate::error::{Error, Result};
 use crate::layout::Layout;
@@ -276,6 +276,49 @@ fn with_drawing<T>(pattern: &Pattern, write: impl FnOnce(&Drawing) -> Result<T>)
     write(&drawing)
 }
 
+/// Upper estimate of the number of rectangles an export of `pattern` draws: one per dot of the
+/// exported frame for dot grids (periodic, Megarena), one per half-period cell for bitmaps,
+/// fingerprints and HP codes, the rectangle count of custom patterns. Computed from the
+/// frame alone (no rectangle is visited), so it is instant for any size.
+pub fn estimate_rects(pattern: &Pattern) -> f64 {
+    let frame = ExportFrame::of(pattern).frame;
+    let p = pattern.layout().period();
+    let cells = |pitch: f64| {
+        if pitch > 0.0 {
+            ((frame.width / pitch).ceil() + 1.0) * ((frame.height / pitch).ceil() + 1.0)
+        } else {
+            f64::INFINITY
+        }
+    };
+    match pattern {
+        Pattern::Periodic(_) | Pattern::Megarena(_) => cells(p),
+        Pattern::Custom(l) => l.dots().len() as f64,
+        Pattern::HpCode(_) | Pattern::Bitmap(_) | Pattern::Fingerprint(_) => cells(p / 2.0),
+    }
+}
+
+/// Upper estimate of the size of the export of `pattern` in `format`, bytes, from
+/// [`estimate_rects`] (SVG: about 80 bytes a rectangle; GDSII and OASIS: rows of dots become
+/// arrays, counted as 2 bytes a rectangle; PNG: one byte a half-period cell).
+pub fn estimate_bytes(pattern: &Pattern, format: ExportFormat) -> f64 {
+    const HEADER: f64 = 4096.0;
+    let rects = estimate_rects(pattern);
+    HEADER
+        + match format {
+            ExportFormat::Svg => 80.0 * rects,
+            ExportFormat::Gds | ExportFormat::Oasis => 2.0 * rects,
+            ExportFormat::Png => {
+                let frame = ExportFrame::of(pattern).canvas;
+                let half = pattern.layout().period() / 2.0;
+                if half > 0.0 {
+                    (frame.width / half + 1.0) * (frame.height / half + 1.0)
+                } else {
+                    rects
+                }
+            }
+        }
+}
+
 /// The file content of `pattern` in `format`.
 ///
 /// Errors: PNG of a `CustomPattern` or of more than [`MAX_PNG_PIXELS`] pixels; GDSII/OASIS
@@ -293,7 +336,7 @@ pub fn export_bytes(pattern: &Pattern, format: ExportFormat) -> Result<Vec<u8>> 
 pub fn export_file(pattern: &Pattern, format: ExportFormat, path: impl AsRef<Path>) -> Result<()> {
     let path = path.as_ref();
     let bytes = export_bytes(pattern, format)?;
-    std::fs::write(path, bytes).map_err(|source| Error::Io {
+    crate::output::write_file(path, &bytes).map_err(|source| Error::Io {
         path: path.to_path_buf(),
         source,
     })

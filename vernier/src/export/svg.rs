@@ -44,6 +44,20 @@ fn xml_escape(text: &str) -> String {
 ///   height, originX, originY and the four margins, one `key: value` per line.
 /// * one `<rect x y width height fill="black"/>` per rectangle, 15 significant digits.
 pub fn write_svg(pattern: &Pattern) -> String {
+    let mut out = Vec::new();
+    // Writing into a Vec cannot fail, and the text is UTF-8 by construction.
+    let _ = write_svg_to(pattern, &mut out, &mut |_| {});
+    String::from_utf8(out).unwrap_or_default()
+}
+
+/// Streams the document of [`write_svg`] into `sink` (no copy of the whole file in memory),
+/// calling `progress` with the number of rectangles written so far every 65536 rectangles.
+/// The first write error stops the output and is returned.
+pub fn write_svg_to(
+    pattern: &Pattern,
+    sink: &mut dyn std::io::Write,
+    progress: &mut dyn FnMut(u64),
+) -> std::io::Result<()> {
     let layout = pattern.layout();
     let frame = ExportFrame::of(pattern);
     let meta = layout.metadata();
@@ -86,18 +100,32 @@ pub fn write_svg(pattern: &Pattern) -> String {
         let _ = writeln!(out, "{key}: {}", xml_escape(&value));
     }
     out.push_str("</desc>\n");
+    sink.write_all(out.as_bytes())?;
+    let mut result = Ok(());
+    let mut count = 0u64;
+    let mut line = String::new();
     frame.visit_rects(layout, &mut |r| {
+        if result.is_err() {
+            return;
+        }
+        line.clear();
         let _ = writeln!(
-            out,
+            line,
             "<rect x=\"{}\" y=\"{}\" width=\"{}\" height=\"{}\" fill=\"black\" />",
             fmt15(r.x),
             fmt15(r.y),
             fmt15(r.width),
             fmt15(r.height)
         );
+        result = sink.write_all(line.as_bytes());
+        count += 1;
+        if count % 65536 == 0 {
+            progress(count);
+        }
     });
-    out.push_str("</svg>\n");
-    out
+    result?;
+    progress(count);
+    sink.write_all(b"</svg>\n")
 }
 
 #[cfg(test)]

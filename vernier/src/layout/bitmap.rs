@@ -87,18 +87,10 @@ pub(crate) fn binarize_image(image: &image::DynamicImage) -> Result<(usize, usiz
     Ok((n_rows, n_cols, cells))
 }
 
-/// Opens and decodes an image file (format guessed from its content).
+/// Opens and decodes an image file (format guessed from its content), within the default
+/// decode limits (100 MP, truncated files rejected).
 pub(crate) fn read_image(path: &Path) -> Result<image::DynamicImage> {
-    let read_error = |reason: String| Error::ImageRead {
-        path: path.to_path_buf(),
-        reason,
-    };
-    image::ImageReader::open(path)
-        .map_err(|e| read_error(e.to_string()))?
-        .with_guessed_format()
-        .map_err(|e| read_error(e.to_string()))?
-        .decode()
-        .map_err(|e| read_error(e.to_string()))
+    crate::grey_image::decode_image_file(path, &crate::grey_image::DecodeLimits::default())
 }
 
 /// Arbitrary binary image on the half-period grid: `n_rows × n_cols` cells of side `P/2` (both ≡ 1

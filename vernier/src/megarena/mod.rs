@@ -170,12 +170,7 @@ pub struct MegarenaDetector {
 impl MegarenaDetector {
     /// A detector with `params` (validated).
     pub fn new(params: MegarenaParams) -> Result<Self> {
-        if !(params.period.is_finite() && params.period > 0.0) {
-            return Err(Error::parameter(
-                "period",
-                format!("must be > 0, got {}", params.period),
-            ));
-        }
+        crate::limits::check_period(params.period)?;
         params.phase.validate()?;
         let index = WindowIndex::new(&params.sequence)?;
         Ok(MegarenaDetector {

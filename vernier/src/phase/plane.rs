@@ -65,11 +65,13 @@ pub fn wrap_to_pi(angle: f64) -> f64 {
 
 /// Reduces an angle to `[−π, π)` (the original's `wrap`, used for pose angles).
 pub fn wrap_angle(angle: f64) -> f64 {
-    let w = (angle + PI).rem_euclid(TAU) - PI;
-    if w >= PI {
-        w - TAU
+    // `rem_euclid` is exact, and so is `r − 2π` for r ∈ [π, 2π) (Sterbenz); adding π first
+    // would round huge angles (1e15 rad + π loses 0.02 rad), so it is not done.
+    let r = angle.rem_euclid(TAU);
+    if r >= PI {
+        r - TAU
     } else {
-        w
+        r
     }
 }
 

@@ -351,6 +351,11 @@ const CACHED_WINDOWS: usize = 4;
 impl StampDetector {
     /// A detector with `params` (validated).
     pub fn new(params: StampParams) -> Result<Self> {
+        // The shared physical ranges (vernier::limits) first, then the detector's own rules.
+        crate::limits::check_period(params.period)?;
+        if let Some(size) = params.window_size {
+            crate::limits::check_window_size(size)?;
+        }
         let mode = params.validate()?;
         let templates = params.bitmaps.iter().map(Template::new).collect();
         let side = |b: &BitmapLayout| b.cell_cols().min(b.cell_rows()) as f64;
