@@ -1,6 +1,6 @@
 //! `vernier bag` on damaged recordings (issue 16): a bad frame is skipped and counted (exit 0,
 //! non-zero with `--strict`), and corrupted chunk bytes are caught by the chunk CRCs before any
-//! of their messages reaches the detector. The recordings are written here with the `mcap`
+//! of their messages reaches the detector; the replay resumes at the next chunk. The recordings are written here with the `mcap`
 //! crate (no Python needed).
 
 mod common;
@@ -119,7 +119,7 @@ fn bad_frames_are_skipped_and_counted() {
 fn corrupted_chunks_never_reach_the_detector() {
     let dir = scratch("bag_crc");
     let bag = dir.join("rec.mcap");
-    write_bag(&bag, &[frame(0), frame(1), frame(2)]);
+    write_bag(&bag, &[frame(0), frame(1), frame(2), frame(3)]);
     let mut bytes = std::fs::read(&bag).unwrap();
     // Flip one pixel of frame 1: every record still parses, only the chunk CRC is wrong.
     let marker = b"frame-1\0";
@@ -134,11 +134,12 @@ fn corrupted_chunks_never_reach_the_detector() {
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(run.status.success(), "{stderr}");
     assert!(
-        stderr.contains("damaged after 1 frames") && stderr.to_lowercase().contains("crc"),
+        stderr.contains("chunk 2 of 4 is damaged") && stderr.to_lowercase().contains("crc"),
         "{stderr}"
     );
-    // Only frame 0 was measured: the corrupted pixels were never used.
+    // Frames 0, 2 and 3 were measured (the replay resumes after the damaged chunk); the
+    // corrupted pixels of frame 1 were never used.
     let csv = std::fs::read_to_string(&out).unwrap();
-    assert_eq!(csv.lines().count(), 2, "{csv}");
+    assert_eq!(csv.lines().count(), 4, "{csv}");
     assert_eq!(replay(&bag, &out, true).status.code(), Some(1));
 }

@@ -370,9 +370,9 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
     let mut corrupt = 0usize;
     for file in &files {
         let data = std::fs::read(file).map_err(|e| format!("{}: {e}", file.display()))?;
-        let total = mcap::Summary::read(&data)
-            .ok()
-            .flatten()
+        let summary = mcap::Summary::read(&data).ok().flatten();
+        let total = summary
+            .as_ref()
             .map(|s| {
                 s.channels
                     .values()
@@ -382,39 +382,10 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
             })
             .unwrap_or(0);
         let progress = progress_bar(total, "frames");
-        // Chunk CRCs are checked before any message of the chunk is used, so corrupted bytes
-        // never reach the detector; the reader stops at the first damaged record.
-        let options = mcap::sans_io::LinearReaderOptions::default()
-            .with_prevalidate_chunk_crcs(true)
-            .with_validate_data_section_crc(true);
-        let mut reader = mcap::sans_io::MessageReader::new_with_options(options);
-        let mut rest: &[u8] = &data;
-        while let Some(event) = reader.next_event() {
-            let message = match event {
-                Ok(mcap::sans_io::MessageReadEvent::ReadRequest(need)) => {
-                    let n = need.min(rest.len());
-                    reader.insert(n).copy_from_slice(&rest[..n]);
-                    reader.notify_read(n);
-                    rest = &rest[n..];
-                    continue;
-                }
-                Ok(mcap::sans_io::MessageReadEvent::Message(message)) => message,
-                Err(e) => {
-                    progress.suspend(|| {
-                        eprintln!(
-                            "vernier: {}: damaged after {} frames, the rest of the file is \
-                             skipped: {e}",
-                            file.display(),
-                            replay.frame
-                        )
-                    });
-                    corrupt += 1;
-                    break;
-                }
-            };
+        let mut handle = |message: &mcap::Message| -> Result<(), String> {
             let channel = &message.channel;
             if channel.topic != args.topic {
-                continue;
+                return Ok(());
             }
             let schema = channel.schema.as_ref().map(|s| s.name.as_str());
             if schema.is_some_and(|s| s != IMAGE_TYPE) || channel.message_encoding != "cdr" {
@@ -426,10 +397,17 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
                     channel.message_encoding
                 ));
             }
-            let time_ns = message.log_time;
-            progress.suspend(|| replay.image(&args.topic, time_ns, &message.data))?;
+            progress.suspend(|| replay.image(&args.topic, message.log_time, &message.data))?;
             progress.inc(1);
-        }
+            Ok(())
+        };
+        let report =
+            |what: String| progress.suspend(|| eprintln!("vernier: {}: {what}", file.display()));
+        corrupt += match summary.as_ref().filter(|s| !s.chunk_indexes.is_empty()) {
+            // Indexed file: chunk by chunk, so a damaged chunk costs only its own frames.
+            Some(summary) => replay_chunks(&data, summary, &mut handle, &report)?,
+            None => replay_linear(&data, &mut handle, &report)?,
+        };
         progress.finish_and_clear();
     }
     if replay.frame == 0 && corrupt == 0 {
@@ -452,7 +430,7 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
             replay.failures,
             replay.frame,
             if corrupt > 0 {
-                format!(", {corrupt} damaged file(s) cut short")
+                format!(", and {corrupt} damaged part(s) of the recording")
             } else {
                 String::new()
             }
@@ -463,4 +441,77 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
     } else {
         ExitCode::SUCCESS
     })
+}
+
+/// Replays every chunk of an indexed MCAP file in file order. Each chunk is decoded whole and
+/// its CRC checked before any of its messages is used, so corrupted bytes never reach the
+/// detector; a damaged chunk is reported and skipped. Returns the number of damaged chunks.
+fn replay_chunks(
+    data: &[u8],
+    summary: &mcap::Summary,
+    handle: &mut dyn FnMut(&mcap::Message) -> Result<(), String>,
+    report: &dyn Fn(String),
+) -> Result<usize, String> {
+    let mut chunks: Vec<&mcap::records::ChunkIndex> = summary.chunk_indexes.iter().collect();
+    chunks.sort_by_key(|c| c.chunk_start_offset);
+    let mut damaged = 0;
+    for (k, index) in chunks.iter().enumerate() {
+        let messages: mcap::McapResult<Vec<mcap::Message>> = summary
+            .stream_chunk(data, index)
+            .and_then(|messages| messages.collect());
+        match messages {
+            Ok(messages) => {
+                for message in &messages {
+                    handle(message)?;
+                }
+            }
+            Err(e) => {
+                report(format!(
+                    "chunk {} of {} is damaged, its frames are skipped: {e}",
+                    k + 1,
+                    chunks.len()
+                ));
+                damaged += 1;
+            }
+        }
+    }
+    Ok(damaged)
+}
+
+/// Replays an MCAP file without a usable index, record by record, chunk CRCs checked before a
+/// chunk's messages are used. The reader cannot resume after a damaged record, so the rest of
+/// the file is reported and skipped. Returns 1 if that happened, else 0.
+fn replay_linear(
+    data: &[u8],
+    handle: &mut dyn FnMut(&mcap::Message) -> Result<(), String>,
+    report: &dyn Fn(String),
+) -> Result<usize, String> {
+    let options = mcap::sans_io::LinearReaderOptions::default()
+        .with_prevalidate_chunk_crcs(true)
+        .with_validate_data_section_crc(true);
+    let mut reader = mcap::sans_io::MessageReader::new_with_options(options);
+    let mut rest: &[u8] = data;
+    let mut messages = 0usize;
+    while let Some(event) = reader.next_event() {
+        match event {
+            Ok(mcap::sans_io::MessageReadEvent::ReadRequest(need)) => {
+                let n = need.min(rest.len());
+                reader.insert(n).copy_from_slice(&rest[..n]);
+                reader.notify_read(n);
+                rest = &rest[n..];
+            }
+            Ok(mcap::sans_io::MessageReadEvent::Message(message)) => {
+                handle(&message)?;
+                messages += 1;
+            }
+            Err(e) => {
+                report(format!(
+                    "damaged after {messages} messages and without an index to resume from, \
+                     the rest of the file is skipped: {e}"
+                ));
+                return Ok(1);
+            }
+        }
+    }
+    Ok(0)
 }
