@@ -15,6 +15,7 @@ use ros2_client::rcl_interfaces::{
 };
 use ros2_client::ParameterValue;
 
+use crate::messages::tests::{cdr, from_cdr};
 use crate::messages::{Header, Image};
 use crate::param_services::{self, ParameterAccess};
 use crate::params::NodeParams;
@@ -151,17 +152,6 @@ fn fuzz_ros_arguments() {
             })
         })
         .unwrap_or_else(|e| panic!("{e}"));
-}
-
-fn cdr<T: serde::Serialize>(value: &T) -> Vec<u8> {
-    ros2_client::dds::rustdds::cdr_encoding::to_vec::<T, byteorder::LittleEndian>(value)
-        .unwrap_or_default()
-}
-
-fn from_cdr<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Option<T> {
-    ros2_client::dds::rustdds::cdr_encoding::from_bytes::<T, byteorder::LittleEndian>(bytes)
-        .ok()
-        .map(|(v, _)| v)
 }
 
 /// The node's parameters without DDS (the same validation as the node).

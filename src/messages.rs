@@ -332,15 +332,17 @@ pub struct MarkerPoseArray {
 ros_message!(MarkerPoseArray, "vernier_ros", "MarkerPoseArray");
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn cdr<T: Serialize>(value: &T) -> Vec<u8> {
+    /// Little-endian CDR bytes of `value` (what DDS puts on the wire), for the tests.
+    pub(crate) fn cdr<T: Serialize>(value: &T) -> Vec<u8> {
         ros2_client::dds::rustdds::cdr_encoding::to_vec::<T, byteorder::LittleEndian>(value)
             .unwrap_or_default()
     }
 
-    fn from_cdr<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Option<T> {
+    /// `bytes` decoded from little-endian CDR, `None` if they do not decode.
+    pub(crate) fn from_cdr<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Option<T> {
         ros2_client::dds::rustdds::cdr_encoding::from_bytes::<T, byteorder::LittleEndian>(bytes)
             .ok()
             .map(|(v, _)| v)

@@ -115,7 +115,16 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
     let overrides = args
         .parameter_overrides(&namespace, &node_name)
         .map_err(|e| e.to_string())?;
-    let params = NodeParams::from_overrides(&overrides)?;
+    let params = NodeParams::from_overrides(&overrides).map_err(|e| {
+        if args.params_files.is_empty() {
+            format!(
+                "{e} (start it with `--ros-args --params-file params/detector.yaml`, or set \
+                 parameters with `--ros-args -p name:=value`; see --help)"
+            )
+        } else {
+            e
+        }
+    })?;
     let processor = Processor::new(params.clone(), 0)?;
     let shared = Arc::new(Shared {
         params: Mutex::new((params.clone(), 0)),
@@ -189,7 +198,7 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
     let diagnostics: Publisher<DiagnosticArray> =
         publisher(&mut node, &topic("/diagnostics"), output_qos(10))?;
     info!(
-        "subscribed to {image_topic}; publishing on {}",
+        "waiting for frames (sensor_msgs/Image) on {image_topic}; publishing on {}",
         topic("~/markers")
     );
 

@@ -15,7 +15,10 @@ bash scripts/setup_test_tools.sh
 profile="${VERNIER_ROS_PROFILE:-release}"
 cargo build --profile "$profile" -p vernier_ros --bins
 case "$profile" in dev | test) out=debug ;; *) out="$profile" ;; esac
-export VERNIER_ROS_BIN_DIR="${CARGO_TARGET_DIR:-$root/target}/$out"
+# Wherever cargo builds ($CARGO_TARGET_DIR, a config's build.target-dir, or ./target).
+target_dir="$(cargo metadata --format-version 1 --no-deps --locked |
+    grep -o '"target_directory":"[^"]*"' | cut -d'"' -f4)"
+export VERNIER_ROS_BIN_DIR="$target_dir/$out"
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 200) + 1 ))}"
 exec unshare --net -- bash -c '
     set -euo pipefail

@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use clap::Parser;
-use vernier::export::{export_bytes, ExportFormat};
+use vernier::export::ExportFormat;
 use vernier::layout::Rect;
 use vernier::pattern_file::Pattern;
 
@@ -144,7 +144,18 @@ pub fn run(args: &ExportArgs) -> Result<ExitCode, String> {
         let file = out.into_inner().map_err(|e| path_error(e.into_error()))?;
         vernier::output::sync(&file).map_err(path_error)?;
     } else {
-        let bytes = export_bytes(&pattern, format).map_err(|e| e.to_string())?;
+        // GDSII/OASIS: a progress bar over the two passes that build the drawing.
+        let rects = vernier::export::estimate_rects(&pattern);
+        let progress = if rects > PROGRESS_MIN_RECTS && format != ExportFormat::Png {
+            crate::batch::progress_bar(2 * rects as u64, "rectangles")
+        } else {
+            indicatif::ProgressBar::hidden()
+        };
+        let bytes = vernier::export::export_bytes_with_progress(&pattern, format, &mut |n| {
+            progress.set_position(n)
+        })
+        .map_err(|e| e.to_string())?;
+        progress.finish_and_clear();
         vernier::output::write_file(&path, &bytes).map_err(path_error)?;
     }
     println!("{}", path.display());

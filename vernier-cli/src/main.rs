@@ -22,7 +22,8 @@ use vernier::{Detector, Polarity, Pose};
 #[command(
     name = "vernier",
     version,
-    about = "Sub-pixel pose of periodic dot markers in microscope images"
+    about = "Sub-pixel pose of periodic dot markers in microscope images",
+    arg_required_else_help = true
 )]
 struct Cli {
     #[command(subcommand)]
@@ -142,14 +143,14 @@ fn main() -> ExitCode {
             let _ = e.print();
             return ExitCode::SUCCESS;
         }
-        // Usage errors: one line, like every other failure.
+        // Bare `vernier` (or a subcommand's bare group): the help, not an error line.
+        Err(e) if e.kind() == clap::error::ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand => {
+            let _ = e.print();
+            return ExitCode::from(2);
+        }
+        // Usage errors: one line, like every other failure, naming what is wrong.
         Err(e) => {
-            let rendered = e.render().to_string();
-            let first = rendered.lines().next().unwrap_or("invalid arguments");
-            eprintln!(
-                "vernier: {} (see `vernier --help`)",
-                first.trim_start_matches("error: ")
-            );
+            eprintln!("vernier: {}", usage_error_line(&e));
             return ExitCode::from(2);
         }
     };
@@ -166,6 +167,38 @@ fn main() -> ExitCode {
             eprintln!("vernier: {message}");
             ExitCode::FAILURE
         }
+    }
+}
+
+/// A clap usage error on one line: its text up to the usage block (clap lists the missing or
+/// bad arguments on the lines after the first), and where to read more.
+fn usage_error_line(e: &clap::Error) -> String {
+    let rendered = e.render().to_string();
+    let mut lines = rendered
+        .lines()
+        .take_while(|l| !l.starts_with("Usage:") && !l.starts_with("For more information"))
+        .map(str::trim)
+        .filter(|l| !l.is_empty());
+    let first = lines
+        .next()
+        .unwrap_or("invalid arguments")
+        .trim_start_matches("error: ")
+        .to_string();
+    let rest: Vec<&str> = lines.collect();
+    let what = if rest.is_empty() {
+        first
+    } else {
+        format!("{} {}", first, rest.join(", "))
+    };
+    // `vernier detect --help` when the error is about a subcommand's arguments.
+    let subcommand = std::env::args().nth(1).filter(|a| {
+        <Cli as clap::CommandFactory>::command()
+            .get_subcommands()
+            .any(|c| c.get_name() == a)
+    });
+    match subcommand {
+        Some(name) => format!("{what} (see `vernier {name} --help`)"),
+        None => format!("{what} (see `vernier --help`)"),
     }
 }
 

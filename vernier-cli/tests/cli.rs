@@ -154,3 +154,24 @@ fn bad_input_gives_one_line_errors_and_failure_codes() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn usage_errors_name_what_is_missing_and_where_to_read_more() {
+    // `vernier detect` without an image names the missing argument and the subcommand's help.
+    let out = vernier()
+        .args(["detect", "--period", "15"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(stderr.lines().count(), 1, "{stderr}");
+    assert!(stderr.contains("<IMAGES>"), "{stderr}");
+    assert!(stderr.contains("`vernier detect --help`"), "{stderr}");
+    // Bare `vernier` shows the help (commands listed), not its description as an error.
+    let out = vernier().output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let text =
+        String::from_utf8_lossy(&out.stderr).to_string() + &String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("Usage:") && text.contains("detect"), "{text}");
+    assert!(!text.starts_with("vernier: "), "{text}");
+}

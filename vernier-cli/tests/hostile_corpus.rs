@@ -8,23 +8,13 @@
 
 mod common;
 
+use common::data_dir;
+
 use std::path::PathBuf;
 use std::process::Command;
 
 /// Address-space cap of every run, bytes (4 GiB).
 const MEMORY_CAP: u64 = 4 << 30;
-
-fn data_dir() -> PathBuf {
-    let dir = std::env::var_os("VERNIER_DATA_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"));
-    assert!(
-        dir.is_dir(),
-        "test data folder {} is missing: set VERNIER_DATA_DIR to the shared/data folder",
-        dir.display()
-    );
-    dir
-}
 
 #[test]
 fn every_hostile_file_gives_a_clean_error_within_the_memory_cap() {

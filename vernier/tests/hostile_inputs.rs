@@ -129,6 +129,15 @@ fn truncated_and_corrupted_images_are_errors() {
     flipped[middle] ^= 0x55;
     let e = open_err(&scratch_file("flipped.png", &flipped));
     assert!(e.contains("CRC"), "{e}");
+
+    // TIFF and PNM carry no end marker: their decoders fail on missing pixel data.
+    let tiff = std::fs::read(data.join("hpcode/code22.tif")).unwrap();
+    assert!(GreyImage::open(data.join("hpcode/code22.tif")).is_ok());
+    open_err(&scratch_file("quarter.tif", &tiff[..tiff.len() / 4]));
+    let mut pgm = b"P5\n64 64\n255\n".to_vec();
+    pgm.extend((0..64 * 64).map(|i| (i % 251) as u8));
+    assert!(GreyImage::open(scratch_file("whole.pgm", &pgm)).is_ok());
+    open_err(&scratch_file("quarter.pgm", &pgm[..pgm.len() / 4]));
 }
 
 fn settings(kind: MarkerKind) -> DetectorSettings {

@@ -31,3 +31,17 @@ pub fn example_pattern() -> PathBuf {
 pub fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
+
+/// Folder of the real test images: `$VERNIER_DATA_DIR`, else `../shared/data` beside the
+/// workspace. Panics (test failure, not skip) when it is missing.
+pub fn data_dir() -> PathBuf {
+    let dir = std::env::var_os("VERNIER_DATA_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"));
+    assert!(
+        dir.is_dir(),
+        "test data folder {} is missing: set VERNIER_DATA_DIR to the shared/data folder",
+        dir.display()
+    );
+    dir
+}

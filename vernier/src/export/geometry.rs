@@ -222,11 +222,29 @@ fn lattice_cell_limit(count: usize) -> usize {
 /// Cost: two visits of the layout's rectangles plus a few passes over the grid, so a
 /// 10⁵-dot Megarena region takes milliseconds.
 pub fn dot_arrays(pattern: &Pattern, frame: &ExportFrame) -> Result<Vec<DotArray>> {
+    dot_arrays_with_progress(pattern, frame, &mut |_| {})
+}
+
+/// [`dot_arrays`], calling `progress` with the number of rectangles visited so far (both
+/// passes: up to twice [`super::estimate_rects`]) every [`PROGRESS_STEP`] rectangles.
+pub fn dot_arrays_with_progress(
+    pattern: &Pattern,
+    frame: &ExportFrame,
+    progress: &mut dyn FnMut(u64),
+) -> Result<Vec<DotArray>> {
+    let mut visited = 0u64;
+    let mut tick = move |progress: &mut dyn FnMut(u64)| {
+        visited += 1;
+        if visited % PROGRESS_STEP == 0 {
+            progress(visited);
+        }
+    };
     let layout = pattern.layout();
     // Pass 1: sizes, bounds and lattice pitch of each size group.
     let mut groups: HashMap<(i64, i64), SizeGroup> = HashMap::new();
     let mut error = None;
     frame.visit_rects(layout, &mut |r| {
+        tick(progress);
         if error.is_some() {
             return;
         }
@@ -290,6 +308,7 @@ pub fn dot_arrays(pattern: &Pattern, frame: &ExportFrame) -> Result<Vec<DotArray
     }
     let mut singles: Vec<DbRect> = Vec::new();
     frame.visit_rects(layout, &mut |r| {
+        tick(progress);
         // Pass 1 converted every rectangle successfully.
         let Ok(d) = to_db(&r) else { return };
         match grids.get_mut(&(d.width, d.height)) {
@@ -324,6 +343,9 @@ pub fn dot_arrays(pattern: &Pattern, frame: &ExportFrame) -> Result<Vec<DotArray
     }));
     Ok(arrays)
 }
+
+/// Rectangles between two progress reports of [`dot_arrays_with_progress`].
+pub const PROGRESS_STEP: u64 = 1 << 16;
 
 /// An array being grown row by row in [`cover_with_stride`]: columns `start..start+len` of
 /// the sub-grid, from sub-grid row `top`, `rows` rows so far.

@@ -246,11 +246,16 @@ fn now_utc() -> [i16; 6] {
     ]
 }
 
-/// Builds the GDSII/OASIS drawing of `pattern` and hands it to `write`.
-fn with_drawing<T>(pattern: &Pattern, write: impl FnOnce(&Drawing) -> Result<T>) -> Result<T> {
+/// Builds the GDSII/OASIS drawing of `pattern` and hands it to `write`; `progress` gets the
+/// rectangles visited so far (see [`geometry::dot_arrays_with_progress`]).
+fn with_drawing<T>(
+    pattern: &Pattern,
+    progress: &mut dyn FnMut(u64),
+    write: impl FnOnce(&Drawing) -> Result<T>,
+) -> Result<T> {
     let layout: &dyn Layout = pattern.layout();
     let frame = ExportFrame::of(pattern);
-    let arrays = dot_arrays(pattern, &frame)?;
+    let arrays = geometry::dot_arrays_with_progress(pattern, &frame, progress)?;
     // Label below the canvas, 8 × the first rectangle's height tall
     // (docs/design.md#export-gds-oasis).
     let height = arrays
@@ -324,11 +329,22 @@ pub fn estimate_bytes(pattern: &Pattern, format: ExportFormat) -> f64 {
 /// Errors: PNG of a `CustomPattern` or of more than [`MAX_PNG_PIXELS`] pixels; GDSII/OASIS
 /// coordinates beyond ±1 m (32-bit nm).
 pub fn export_bytes(pattern: &Pattern, format: ExportFormat) -> Result<Vec<u8>> {
+    export_bytes_with_progress(pattern, format, &mut |_| {})
+}
+
+/// [`export_bytes`], calling `progress` while a GDSII or OASIS drawing is built with the
+/// rectangles visited so far, out of about twice [`estimate_rects`] (two passes; PNG and SVG
+/// report nothing here: SVG streams with [`write_svg_to`]).
+pub fn export_bytes_with_progress(
+    pattern: &Pattern,
+    format: ExportFormat,
+    progress: &mut dyn FnMut(u64),
+) -> Result<Vec<u8>> {
     match format {
         ExportFormat::Png => write_png(pattern),
         ExportFormat::Svg => Ok(write_svg(pattern).into_bytes()),
-        ExportFormat::Gds => with_drawing(pattern, gds::write_gds),
-        ExportFormat::Oasis => with_drawing(pattern, |d| Ok(oasis::write_oasis(d))),
+        ExportFormat::Gds => with_drawing(pattern, progress, gds::write_gds),
+        ExportFormat::Oasis => with_drawing(pattern, progress, |d| Ok(oasis::write_oasis(d))),
     }
 }
 
