@@ -9,6 +9,7 @@ mod inputs;
 mod plot;
 mod pose_table;
 mod rerun_log;
+mod stats;
 
 use clap::{Parser, Subcommand};
 use std::path::{Path, PathBuf};
@@ -42,6 +43,8 @@ enum Command {
     Plot(plot::PlotArgs),
     /// Replay a rosbag2 MCAP recording through the detector (poses to MCAP, CSV or JSON Lines).
     Bag(bag::BagArgs),
+    /// Noise of a pose table per marker and relative pair (robust second differences).
+    Stats(stats::StatsArgs),
 }
 
 #[derive(Parser)]
@@ -160,6 +163,7 @@ fn main() -> ExitCode {
         Command::Export(args) => export_cmd::run(&args),
         Command::Plot(args) => plot::run(&args),
         Command::Bag(args) => bag::run(&args),
+        Command::Stats(args) => stats::run(&args),
     };
     match result {
         Ok(code) => code,

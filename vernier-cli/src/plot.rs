@@ -52,7 +52,7 @@ pub fn allan_deviation(y: &[f64], tau0: f64) -> Vec<(f64, f64)> {
 }
 
 /// Mean and (sample) standard deviation.
-fn mean_std(v: &[f64]) -> (f64, f64) {
+pub(crate) fn mean_std(v: &[f64]) -> (f64, f64) {
     let n = v.len() as f64;
     let mean = v.iter().sum::<f64>() / n;
     let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
@@ -89,15 +89,15 @@ const QUANTITIES: [Quantity; 3] = [
 ];
 
 /// The series of one marker: time (s, or frame index) and the rows.
-struct Series<'a> {
-    id: u64,
-    time: Vec<f64>,
-    rows: Vec<&'a PoseRow>,
+pub(crate) struct Series<'a> {
+    pub id: u64,
+    pub time: Vec<f64>,
+    pub rows: Vec<&'a PoseRow>,
 }
 
 /// Groups the rows with a pose by marker ID; time is the stamp relative to the first one
 /// when every row has one, else the frame index.
-fn series(rows: &[PoseRow]) -> (Vec<Series<'_>>, &'static str, f64) {
+pub(crate) fn series(rows: &[PoseRow]) -> (Vec<Series<'_>>, &'static str, f64) {
     let posed: Vec<&PoseRow> = rows
         .iter()
         .filter(|r| r.id.is_some() && r.x.is_some() && r.y.is_some())

@@ -34,16 +34,23 @@ pub struct MarkerPose {
 }
 
 impl MarkerPose {
-    /// 6×6 covariance of `(x, y, z, roll, pitch, yaw)` in **pattern units and radians**,
-    /// estimated from the phase-fit noise: `σ_x = P·σ_c1/2π`, `σ_y = P·σ_c2/2π`, yaw from the
-    /// plane slopes over `window_px` pixels. Unobserved axes (z, roll, pitch for planar poses)
-    /// get a variance of `1e6` (large, per ROS convention for "unknown").
+    /// 6×6 covariance of `(x, y, z, roll, pitch, yaw)` of the camera-frame pose `cTp` (the
+    /// translation of [`Pose::camera_from_pattern`], as published by the node), in **pattern
+    /// units and radians**, estimated from the phase-fit noise. Along the pattern axes the
+    /// position errors are `σ_x = P·σ_c1/2π` and `σ_y = P·σ_c2/2π`; the pattern axes are turned
+    /// by `alpha` in the camera frame, so the position block is `Rz(α)·diag(σ_x², σ_y²)·Rz(α)ᵀ`.
+    /// Yaw from the plane slopes over `window_px` pixels. Unobserved axes (z, roll, pitch for
+    /// planar poses) get a variance of `1e6` (large, per ROS convention for "unknown").
     pub fn covariance(&self, period: f64, window_px: f64) -> [[f64; 6]; 6] {
         let mut cov = [[0.0; 6]; 6];
         let sx = period * self.phase_std[0] / std::f64::consts::TAU;
         let sy = period * self.phase_std[1] / std::f64::consts::TAU;
-        cov[0][0] = sx * sx;
-        cov[1][1] = sy * sy;
+        let (vx, vy) = (sx * sx, sy * sy);
+        let (s, c) = self.pose.alpha.sin_cos();
+        cov[0][0] = c * c * vx + s * s * vy;
+        cov[1][1] = s * s * vx + c * c * vy;
+        cov[0][1] = c * s * (vx - vy);
+        cov[1][0] = cov[0][1];
         cov[2][2] = 1e6;
         cov[3][3] = 1e6;
         cov[4][4] = 1e6;
@@ -360,5 +367,41 @@ pub fn flag_duplicate_ids(markers: &mut [MarkerPose]) {
         let id = markers[i].id;
         let count = markers.iter().filter(|m| m.id == id).count();
         markers[i].duplicate_id = count > 1;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn marker(alpha: f64, phase_std: [f64; 2]) -> MarkerPose {
+        MarkerPose {
+            id: 0,
+            pose: Pose::planar(1.0, 2.0, alpha, 0.5),
+            origin_px: Vector2::zeros(),
+            quality: 1.0,
+            phase_std,
+            duplicate_id: false,
+            decode_confidence: None,
+        }
+    }
+
+    #[test]
+    fn covariance_is_in_the_camera_frame() {
+        let tau = std::f64::consts::TAU;
+        let (period, window) = (tau, 100.0);
+        // σ_x = 1 along the pattern x axis, σ_y = 3 along y (P = 2π: σ = σ_c).
+        let axis_aligned = marker(0.0, [1.0, 3.0]).covariance(period, window);
+        assert_eq!((axis_aligned[0][0], axis_aligned[1][1]), (1.0, 9.0));
+        assert_eq!(axis_aligned[0][1], 0.0);
+        // Turned by a quarter turn, the pattern's x axis is the camera's y axis.
+        let turned = marker(std::f64::consts::FRAC_PI_2, [1.0, 3.0]).covariance(period, window);
+        assert!((turned[0][0] - 9.0).abs() < 1e-12 && (turned[1][1] - 1.0).abs() < 1e-12);
+        // At 45°, the anisotropy shows as a correlation of camera x and y.
+        let diagonal = marker(std::f64::consts::FRAC_PI_4, [1.0, 3.0]).covariance(period, window);
+        assert!((diagonal[0][0] - 5.0).abs() < 1e-12 && (diagonal[1][1] - 5.0).abs() < 1e-12);
+        assert!((diagonal[0][1] + 4.0).abs() < 1e-12 && diagonal[1][0] == diagonal[0][1]);
+        // The trace does not depend on the angle.
+        assert!((turned[0][0] + turned[1][1] - 10.0).abs() < 1e-12);
     }
 }

@@ -1,0 +1,251 @@
+//! `vernier stats`: the noise of a pose series, per marker and for each relative pair of
+//! markers (the repeatability table of metrologists), from a pose table of `detect` or `bag`.
+//!
+//! Noise is estimated from robust second differences, `σ ≈ 1.4826·median|v[n+1] − 2v[n] +
+//! v[n−1]| / √6`: for white noise of deviation σ on a smooth motion, the second difference has
+//! deviation `σ·√6` and removes the motion (a constant velocity exactly, a slow acceleration
+//! nearly), and the median makes one bad frame harmless. The plain standard deviation, which
+//! includes the motion, is printed beside it.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::Parser;
+
+use crate::plot::{mean_std, series};
+use crate::pose_table::{read_table, PoseRow};
+
+/// Arguments of `vernier stats`.
+#[derive(Parser)]
+pub struct StatsArgs {
+    /// Pose table written by `vernier detect` or `vernier bag` (CSV or JSON Lines).
+    input: PathBuf,
+    /// Relative pair `A:B` (pose of marker B in marker A's frame); repeat for several.
+    /// Default: every pair of the markers in the table (at most 8 markers).
+    #[arg(long = "pair", value_parser = parse_pair)]
+    pairs: Vec<(u64, u64)>,
+}
+
+/// Most markers whose pairs are all listed by default.
+const MAX_DEFAULT_MARKERS: usize = 8;
+
+fn parse_pair(text: &str) -> Result<(u64, u64), String> {
+    let (a, b) = text
+        .split_once(':')
+        .ok_or_else(|| format!("`{text}`: expected A:B (two marker IDs)"))?;
+    let id = |s: &str| {
+        s.trim()
+            .parse::<u64>()
+            .map_err(|_| format!("`{text}`: `{s}` is not a marker ID"))
+    };
+    Ok((id(a)?, id(b)?))
+}
+
+/// Robust noise of `v` from its second differences (see the module docs); `None` below 3
+/// samples.
+pub fn second_difference_noise(v: &[f64]) -> Option<f64> {
+    let mut d: Vec<f64> = v
+        .windows(3)
+        .map(|w| (w[2] - 2.0 * w[1] + w[0]).abs())
+        .collect();
+    if d.is_empty() {
+        return None;
+    }
+    let mid = d.len() / 2;
+    let (_, median, _) = d.select_nth_unstable_by(mid, f64::total_cmp);
+    Some(1.4826 * *median / 6f64.sqrt())
+}
+
+/// One row of the table: a name and its samples of x, y (pattern units) and alpha (rad).
+struct Samples {
+    name: String,
+    x: Vec<f64>,
+    y: Vec<f64>,
+    alpha: Vec<f64>,
+}
+
+impl Samples {
+    fn print(&self) {
+        let cell = |v: &[f64], scale: f64| {
+            let scaled: Vec<f64> = v.iter().map(|x| x * scale).collect();
+            let (_, std) = mean_std(&scaled);
+            let noise = second_difference_noise(&scaled).unwrap_or(f64::NAN);
+            format!("{std:>12.4e} {noise:>12.4e}")
+        };
+        println!(
+            "{:<14} {:>7} {} {} {}",
+            self.name,
+            self.x.len(),
+            cell(&self.x, 1.0),
+            cell(&self.y, 1.0),
+            cell(&self.alpha, 1e6)
+        );
+    }
+}
+
+/// Pose of marker `b` in marker `a`'s frame, per frame where both are seen: position
+/// `Rz(−α_a)·(p_b − p_a)` (pattern units), angle `α_b − α_a` wrapped to `[−π, π)`.
+fn relative(a: &[&PoseRow], b: &[&PoseRow], name: String) -> Samples {
+    let by_frame: BTreeMap<u64, &PoseRow> = b.iter().map(|r| (r.frame, *r)).collect();
+    let mut out = Samples {
+        name,
+        x: Vec::new(),
+        y: Vec::new(),
+        alpha: Vec::new(),
+    };
+    for ra in a {
+        let Some(rb) = by_frame.get(&ra.frame) else {
+            continue;
+        };
+        let (Some(xa), Some(ya), Some(aa), Some(xb), Some(yb), Some(ab)) =
+            (ra.x, ra.y, ra.alpha, rb.x, rb.y, rb.alpha)
+        else {
+            continue;
+        };
+        let (dx, dy) = (xb - xa, yb - ya);
+        let (s, c) = aa.sin_cos();
+        out.x.push(c * dx + s * dy);
+        out.y.push(-s * dx + c * dy);
+        out.alpha.push(vernier::phase::wrap_angle(ab - aa));
+    }
+    out
+}
+
+/// Runs `vernier stats`.
+pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
+    let text = std::fs::read_to_string(&args.input)
+        .map_err(|e| format!("{}: {e}", args.input.display()))?;
+    let rows = read_table(&text).map_err(|e| format!("{}: {e}", args.input.display()))?;
+    let (markers, _, _) = series(&rows);
+    if markers.is_empty() {
+        return Err(format!("{}: no pose in the table", args.input.display()));
+    }
+    let by_id: BTreeMap<u64, &[&PoseRow]> =
+        markers.iter().map(|s| (s.id, s.rows.as_slice())).collect();
+    let pairs: Vec<(u64, u64)> = if !args.pairs.is_empty() {
+        args.pairs.clone()
+    } else if by_id.len() <= MAX_DEFAULT_MARKERS {
+        let ids: Vec<u64> = by_id.keys().copied().collect();
+        ids.iter()
+            .enumerate()
+            .flat_map(|(i, &a)| ids[i + 1..].iter().map(move |&b| (a, b)))
+            .collect()
+    } else {
+        Vec::new()
+    };
+    if let Some((a, b)) = pairs
+        .iter()
+        .find(|(a, b)| !by_id.contains_key(a) || !by_id.contains_key(b))
+    {
+        return Err(format!(
+            "--pair {a}:{b}: marker {a} or {b} is not in the table"
+        ));
+    }
+    println!(
+        "noise = 1.4826·median|v[n+1] − 2v[n] + v[n−1]|/√6 (white noise on a smooth motion); \
+         std includes the motion"
+    );
+    println!(
+        "{:<14} {:>7} {:>12} {:>12} {:>12} {:>12} {:>12} {:>12}",
+        "marker / pair",
+        "samples",
+        "x std",
+        "x noise",
+        "y std",
+        "y noise",
+        "alpha std",
+        "alpha noise"
+    );
+    println!(
+        "{:<14} {:>7} {:>25} {:>25} {:>25}",
+        "", "", "(pattern units)", "(pattern units)", "(µrad)"
+    );
+    for s in &markers {
+        let get = |f: fn(&PoseRow) -> Option<f64>| s.rows.iter().filter_map(|r| f(r)).collect();
+        Samples {
+            name: format!("{}", s.id),
+            x: get(|r| r.x),
+            y: get(|r| r.y),
+            alpha: get(|r| r.alpha),
+        }
+        .print();
+    }
+    for (a, b) in pairs {
+        let (Some(ra), Some(rb)) = (by_id.get(&a), by_id.get(&b)) else {
+            return Err(format!(
+                "--pair {a}:{b}: marker {a} or {b} is not in the table"
+            ));
+        };
+        let rel = relative(ra, rb, format!("{b} in {a}"));
+        if rel.x.is_empty() {
+            println!("{:<14} {:>7} (never seen together)", rel.name, 0);
+        } else {
+            rel.print();
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn second_differences_see_the_noise_not_the_motion() {
+        // Smooth motion of 50 units plus ±σ noise from a fixed pseudo-random sequence.
+        let sigma = 0.01;
+        let mut state = 12345u64;
+        let mut gauss = || {
+            // Sum of 12 uniforms − 6: unit variance.
+            (0..12)
+                .map(|_| {
+                    state = state
+                        .wrapping_mul(6364136223846793005)
+                        .wrapping_add(1442695040888963407);
+                    (state >> 11) as f64 / (1u64 << 53) as f64
+                })
+                .sum::<f64>()
+                - 6.0
+        };
+        let v: Vec<f64> = (0..4000)
+            .map(|n| 50.0 * (n as f64 / 4000.0 * 3.0).sin() + sigma * gauss())
+            .collect();
+        let noise = second_difference_noise(&v).unwrap();
+        assert!((noise / sigma - 1.0).abs() < 0.1, "{noise}");
+        let (_, std) = mean_std(&v);
+        assert!(std > 100.0 * sigma);
+        assert_eq!(second_difference_noise(&v[..2]), None);
+    }
+
+    #[test]
+    fn relative_pose_is_in_the_first_markers_frame() {
+        let row = |frame, x, y, alpha| PoseRow {
+            frame,
+            id: Some(0),
+            x: Some(x),
+            y: Some(y),
+            alpha: Some(alpha),
+            ..PoseRow::default()
+        };
+        let a = [row(0, 1.0, 1.0, std::f64::consts::FRAC_PI_2)];
+        let b = [
+            row(0, 1.0, 3.0, std::f64::consts::PI),
+            row(1, 0.0, 0.0, 0.0),
+        ];
+        let ra: Vec<&PoseRow> = a.iter().collect();
+        let rb: Vec<&PoseRow> = b.iter().collect();
+        let rel = relative(&ra, &rb, "b in a".into());
+        // b is 2 units along a's +x (a is turned by 90°), turned by another 90°.
+        assert_eq!(rel.x.len(), 1);
+        assert!((rel.x[0] - 2.0).abs() < 1e-12 && rel.y[0].abs() < 1e-12);
+        assert!((rel.alpha[0] - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+    }
+
+    #[test]
+    fn pairs_parse() {
+        assert_eq!(parse_pair("0:1"), Ok((0, 1)));
+        assert!(parse_pair("0-1").is_err());
+        assert!(parse_pair("a:1").is_err());
+    }
+}
