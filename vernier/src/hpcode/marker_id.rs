@@ -283,7 +283,8 @@ pub(crate) fn grid_precheck(
 /// the *diagonal* cells between four dots, which are empty in a sharp finder (but its very
 /// centre, 1 of 9). So the corners also pass when the bridge fraction minus the diagonal
 /// fraction (~0.43 for a sharp finder, ~0 for dots, occluded or not) tells them apart. Blur
-/// fills a finder's diagonals as well, so that second test only helps sharp markers. Whatever
+/// fills a finder's diagonals as well, so that second test only helps sharp markers, and it
+/// needs all three finder corners to show a finder (the dot corner being unknown). Whatever
 /// the test, no finder corner may look like plain dots (most dots present, almost no bridges):
 /// an occluded finder shows all ink or none, plain dots are the other corner of a reading
 /// turned by a quarter turn.
@@ -335,12 +336,17 @@ pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &D
     if finders.iter().any(|c| c.2 >= 0.5 && c.0 < 0.2) {
         return false;
     }
-    let separated = |measure: fn(&(f64, f64, f64)) -> f64, min_finder: f64, max_dots: f64| {
-        let mut seen: Vec<f64> = finders.iter().map(measure).collect();
-        seen.sort_by(f64::total_cmp);
-        seen[1] >= min_finder && measure(&dots) < (0.5 * seen[1]).min(max_dots)
-    };
-    separated(|c| c.0, 0.3, 0.4) || separated(|c| c.0 - c.1, 0.2, 0.25)
+    // The dot corner is compared with the middle finder corner; `rank` 1 lets one finder be
+    // hidden, 0 needs all three to show.
+    let separated =
+        |measure: fn(&(f64, f64, f64)) -> f64, rank: usize, min_finder: f64, max_dots: f64| {
+            let mut seen: Vec<f64> = finders.iter().map(measure).collect();
+            seen.sort_by(f64::total_cmp);
+            seen[rank] >= min_finder && measure(&dots) < (0.5 * seen[1]).min(max_dots)
+        };
+    // An occluded dot corner is one unknown corner already: the dust test then needs all
+    // three finders to show themselves, or a quarter turn with a hidden finder could pass.
+    separated(|c| c.0, 1, 0.3, 0.4) || separated(|c| c.0 - c.1, 0, 0.2, 0.25)
 }
 
 /// Threshold halfway between the median level of the marker's inner dots and of the bridges
