@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use clap::Parser;
 use plotters::prelude::*;
 
-use crate::pose_table::{read_table, PoseRow};
+use crate::pose_table::{read_table_file, PoseRow};
 
 /// Arguments of `vernier plot`.
 #[derive(Parser)]
@@ -141,9 +141,7 @@ pub(crate) fn series(rows: &[PoseRow]) -> (Vec<Series<'_>>, &'static str, f64) {
 
 /// Runs `vernier plot`.
 pub fn run(args: &PlotArgs) -> Result<ExitCode, String> {
-    let text = std::fs::read_to_string(&args.input)
-        .map_err(|e| format!("{}: {e}", args.input.display()))?;
-    let rows = read_table(&text).map_err(|e| format!("{}: {e}", args.input.display()))?;
+    let rows = read_table_file(&args.input)?;
     let (all, time_unit, tau0) = series(&rows);
     if all.is_empty() {
         return Err(format!("{}: no pose to plot", args.input.display()));

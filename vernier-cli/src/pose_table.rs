@@ -264,6 +264,12 @@ fn split_csv_line(line: &str) -> Vec<String> {
     fields
 }
 
+/// Reads the pose table file `path` ([`read_table`]); errors name the file.
+pub fn read_table_file(path: &std::path::Path) -> Result<Vec<PoseRow>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    read_table(&text).map_err(|e| format!("{}: {e}", path.display()))
+}
+
 /// Reads a pose table written by [`TableWriter`] (CSV when the first line is the header,
 /// else JSON Lines). Unknown CSV columns are ignored; `frame` and `time_ms` may be missing.
 pub fn read_table(text: &str) -> Result<Vec<PoseRow>, String> {

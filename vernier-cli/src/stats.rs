@@ -14,7 +14,7 @@ use std::process::ExitCode;
 use clap::Parser;
 
 use crate::plot::{mean_std, series};
-use crate::pose_table::{read_table, PoseRow};
+use crate::pose_table::{read_table_file, PoseRow};
 
 /// Arguments of `vernier stats`.
 #[derive(Parser)]
@@ -114,9 +114,7 @@ fn relative(a: &[&PoseRow], b: &[&PoseRow], name: String) -> Samples {
 
 /// Runs `vernier stats`.
 pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
-    let text = std::fs::read_to_string(&args.input)
-        .map_err(|e| format!("{}: {e}", args.input.display()))?;
-    let rows = read_table(&text).map_err(|e| format!("{}: {e}", args.input.display()))?;
+    let rows = read_table_file(&args.input)?;
     let (markers, _, _) = series(&rows);
     if markers.is_empty() {
         return Err(format!("{}: no pose in the table", args.input.display()));

@@ -62,8 +62,8 @@ const REFINE_MIN_AREA: f64 = 4.0;
 const REFINE_MARGIN_BLOCKS: usize = 2;
 /// Windows covering at least this many pixels are labelled on two threads.
 const PARALLEL_WINDOW_PIXELS: usize = 1 << 16;
-/// A finer level is labelled whole when its windows would cover more than this fraction.
-const WHOLE_LEVEL_FRACTION: usize = 2;
+/// A finer level is labelled whole when its windows would cover more than this fraction of it.
+const WHOLE_LEVEL_FRACTION: f64 = 0.5;
 
 /// A finder square found in the image.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -81,13 +81,12 @@ pub struct Finder {
 
 impl Finder {
     /// The same finder in the frame of the image that `level` binnings 2×2 turned into the
-    /// image it was found in, at `origin` (pixels of that level) of it: binned pixel `c`
-    /// covers pixels `2c, 2c + 1`, whose centre is `2c + ½`.
-    fn in_full_image(self, origin: (usize, usize), level: usize) -> Finder {
+    /// image it was found in: binned pixel `c` covers pixels `2c, 2c + 1`, whose centre is
+    /// `2c + ½`.
+    fn in_full_image(self, level: usize) -> Finder {
         let scale = (1usize << level) as f64;
-        let origin = Vector2::new(origin.0 as f64, origin.1 as f64);
         Finder {
-            center: (self.center + origin) * scale + Vector2::repeat((scale - 1.0) / 2.0),
+            center: self.center * scale + Vector2::repeat((scale - 1.0) / 2.0),
             module_px: self.module_px * scale,
             ..self
         }
@@ -143,7 +142,7 @@ impl FinderScanner {
             };
             let (finders, finer_small) =
                 scan_windows(&mut self.labelling, level_image, &windows, floor, level > 0);
-            found.extend(finders.into_iter().map(|f| f.in_full_image((0, 0), level)));
+            found.extend(finders.into_iter().map(|f| f.in_full_image(level)));
             small = finer_small;
         }
         let unique = dedup(found);
@@ -374,7 +373,7 @@ fn refine_windows(image: &GreyImage, small: &[[u32; 4]]) -> Vec<Window> {
     if count == 0 {
         return Vec::new();
     }
-    if count * WHOLE_LEVEL_FRACTION > bw * bh {
+    if count as f64 > WHOLE_LEVEL_FRACTION * (bw * bh) as f64 {
         return vec![Window::whole(image)];
     }
     let mut rects = block_groups(&mut marked, bw, bh);
