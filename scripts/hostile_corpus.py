@@ -181,7 +181,10 @@ def main():
     csv = os.path.join(out, "out.csv")
     case("yaml_bomb", ["bag", "--input", mcap, "--params", params, "--output", csv], "nodes")
     for name, text, expect in [
-        ("yaml_unknown.yaml", "/**:\n  ros__parameters:\n    not_a_param: 1\n", "unknown parameter"),
+        # A name the node does not declare is ignored with a warning (as rclcpp does); a
+        # declared one of the wrong type is an error.
+        ("yaml_wrong_type.yaml", "/**:\n  ros__parameters:\n    not_a_param: 1\n    code_size: x\n",
+         "code_size"),
         ("yaml_min_quality.yaml", "/**:\n  ros__parameters:\n    min_quality: 2\n", "min_quality"),
         ("yaml_max_rate.yaml", "/**:\n  ros__parameters:\n    max_rate: -5\n", "max_rate"),
         ("yaml_pairs.yaml", "/**:\n  ros__parameters:\n    relative_pairs: ['1-2']\n",

@@ -1,73 +1,163 @@
-//! Counters and timings of the node, reported on `/diagnostics` about once a second, and
-//! the throttle of repeated warnings.
+//! Counters and timings of the node, reported on `/diagnostics` about once a second over a
+//! sliding window (so the level recovers after a burst of bad frames), and the throttle of
+//! repeated warnings.
 
 use crate::messages::{
     diagnostic_level, DiagnosticArray, DiagnosticStatus, Header, KeyValue, Time,
 };
+use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
-/// Counters since start, plus the processing times of the current reporting window.
-#[derive(Clone, Debug, Default)]
+/// Length of the sliding window over which rates, times and problem counts are reported.
+pub const WINDOW: Duration = Duration::from_secs(10);
+/// No image for this long turns the status WARN (ERROR if none ever arrived).
+pub const STALE_AFTER: Duration = Duration::from_secs(3);
+
+/// What happened to one frame or message.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Event {
+    /// A valid image message arrived.
+    Received,
+    /// A frame was processed and published: processing time and latency from arrival to
+    /// published, milliseconds.
+    Processed {
+        /// Detection and publishing, ms.
+        processing_ms: f64,
+        /// From arrival in the receiver to published, ms (includes waiting for the worker).
+        latency_ms: f64,
+    },
+    /// A frame was replaced by a newer one before the worker took it.
+    Dropped,
+    /// A frame was skipped by `max_rate`.
+    RateLimited,
+    /// An unusable message (bad encoding, size or length; undecodable CDR or compression).
+    Bad,
+    /// A processed frame held no marker.
+    NotFound,
+}
+
+/// Counters since start, and the events of the last [`WINDOW`], from which the status is
+/// judged: a burst of bad frames turns it WARN only while it is in the window.
+#[derive(Clone, Debug)]
 pub struct Stats {
-    /// Valid image messages received.
-    pub received: u64,
-    /// Frames processed (an output was published).
-    pub processed: u64,
-    /// Frames replaced by a newer one before the worker took them.
-    pub dropped: u64,
-    /// Frames skipped by the `max_rate` limit.
-    pub rate_limited: u64,
-    /// Unusable messages (bad encoding, size or length; undecodable CDR).
-    pub bad_messages: u64,
-    /// Processed frames in which no marker was found.
-    pub not_found: u64,
+    started: Instant,
+    last_received: Option<Instant>,
+    /// Events of the window, oldest first.
+    events: VecDeque<(Instant, Event)>,
+    /// Counts since start, in [`Event`] order.
+    totals: [u64; 6],
     /// Last reason a message was rejected.
     pub last_bad_reason: String,
-    /// Processing times of the current window, milliseconds.
-    window_ms: Vec<f64>,
-    /// `processed` at the start of the current window.
-    window_start_processed: u64,
 }
 
 impl Stats {
-    /// Records one processed frame that took `elapsed`.
-    pub fn record_processing(&mut self, elapsed: Duration) {
-        self.processed += 1;
-        self.window_ms.push(elapsed.as_secs_f64() * 1e3);
+    /// Empty statistics of a node started at `started`.
+    pub fn new(started: Instant) -> Stats {
+        Stats {
+            started,
+            last_received: None,
+            events: VecDeque::new(),
+            totals: [0; 6],
+            last_bad_reason: String::new(),
+        }
     }
 
-    /// Builds the `/diagnostics` message for the window that lasted `window` and starts a new
-    /// window.
-    pub fn report(&mut self, node_name: &str, window: Duration) -> DiagnosticArray {
-        let frames = self.processed - self.window_start_processed;
-        let rate = frames as f64 / window.as_secs_f64().max(1e-9);
-        let mut times = std::mem::take(&mut self.window_ms);
-        times.sort_by(f64::total_cmp);
-        let p50 = percentile(&times, 0.5);
-        let p99 = percentile(&times, 0.99);
-        self.window_start_processed = self.processed;
-        let level = if self.bad_messages > 0 || self.dropped > 0 {
-            diagnostic_level::WARN
-        } else {
-            diagnostic_level::OK
-        };
-        let message = if self.bad_messages > 0 {
-            format!(
-                "{} bad messages (last: {})",
-                self.bad_messages, self.last_bad_reason
-            )
-        } else if self.dropped > 0 {
-            format!("{} frames dropped while busy", self.dropped)
-        } else {
-            "ok".to_string()
+    /// Records `event` at `now`.
+    pub fn record(&mut self, now: Instant, event: Event) {
+        if event == Event::Received {
+            self.last_received = Some(now);
+        }
+        self.totals[index(&event)] += 1;
+        self.events.push_back((now, event));
+        self.forget_before(now);
+    }
+
+    /// Total count of events like `event` since start.
+    pub fn total(&self, event: Event) -> u64 {
+        self.totals[index(&event)]
+    }
+
+    fn forget_before(&mut self, now: Instant) {
+        while let Some((t, _)) = self.events.front() {
+            if now.duration_since(*t) <= WINDOW {
+                break;
+            }
+            self.events.pop_front();
+        }
+    }
+
+    /// The `/diagnostics` message at `now`, stamped `stamp` (the node's clock: `/clock` with
+    /// `use_sim_time`), for the node `node_name` subscribed to `topic`.
+    pub fn report(
+        &mut self,
+        now: Instant,
+        stamp: Time,
+        node_name: &str,
+        topic: &str,
+    ) -> DiagnosticArray {
+        self.forget_before(now);
+        let span = now
+            .duration_since(self.started)
+            .min(WINDOW)
+            .as_secs_f64()
+            .max(1e-3);
+        let mut count = [0u64; 6];
+        let (mut processing, mut latency) = (Vec::new(), Vec::new());
+        for (_, e) in &self.events {
+            count[index(e)] += 1;
+            if let Event::Processed {
+                processing_ms,
+                latency_ms,
+            } = e
+            {
+                processing.push(*processing_ms);
+                latency.push(*latency_ms);
+            }
+        }
+        processing.sort_by(f64::total_cmp);
+        latency.sort_by(f64::total_cmp);
+        let [received, processed, dropped, rate_limited, bad, not_found] = count;
+        let (level, message) = match self.last_received {
+            None if now.duration_since(self.started) >= STALE_AFTER => (
+                diagnostic_level::ERROR,
+                format!("no image received on {topic} since start"),
+            ),
+            Some(last) if now.duration_since(last) >= STALE_AFTER => (
+                diagnostic_level::WARN,
+                format!(
+                    "no image on {topic} for {:.0} s",
+                    now.duration_since(last).as_secs_f64()
+                ),
+            ),
+            _ if bad > 0 => (
+                diagnostic_level::WARN,
+                format!(
+                    "{bad} bad messages in the last {} s (last: {})",
+                    WINDOW.as_secs(),
+                    self.last_bad_reason
+                ),
+            ),
+            _ if dropped > 0 => (
+                diagnostic_level::WARN,
+                format!(
+                    "{dropped} frames dropped while busy in the last {} s",
+                    WINDOW.as_secs()
+                ),
+            ),
+            None => (
+                diagnostic_level::OK,
+                format!("waiting for images on {topic}"),
+            ),
+            Some(_) => (diagnostic_level::OK, "ok".to_string()),
         };
         let kv = |key: &str, value: String| KeyValue {
             key: key.into(),
             value,
         };
+        let total = |e: Event| self.total(e).to_string();
         DiagnosticArray {
             header: Header {
-                stamp: Time::now(),
+                stamp,
                 frame_id: String::new(),
             },
             status: vec![DiagnosticStatus {
@@ -76,18 +166,46 @@ impl Stats {
                 message,
                 hardware_id: String::new(),
                 values: vec![
-                    kv("rate_hz", format!("{rate:.2}")),
-                    kv("processing_ms_p50", format_ms(p50)),
-                    kv("processing_ms_p99", format_ms(p99)),
-                    kv("frames_received", self.received.to_string()),
-                    kv("frames_processed", self.processed.to_string()),
-                    kv("frames_dropped", self.dropped.to_string()),
-                    kv("frames_rate_limited", self.rate_limited.to_string()),
-                    kv("frames_without_marker", self.not_found.to_string()),
-                    kv("bad_messages", self.bad_messages.to_string()),
+                    kv("window_s", format!("{span:.1}")),
+                    kv("rate_hz", format!("{:.2}", processed as f64 / span)),
+                    kv("input_rate_hz", format!("{:.2}", received as f64 / span)),
+                    kv("processing_ms_p50", format_ms(percentile(&processing, 0.5))),
+                    kv(
+                        "processing_ms_p99",
+                        format_ms(percentile(&processing, 0.99)),
+                    ),
+                    kv("latency_ms_p50", format_ms(percentile(&latency, 0.5))),
+                    kv("latency_ms_p99", format_ms(percentile(&latency, 0.99))),
+                    kv("window_frames_dropped", dropped.to_string()),
+                    kv("window_frames_rate_limited", rate_limited.to_string()),
+                    kv("window_frames_without_marker", not_found.to_string()),
+                    kv("window_bad_messages", bad.to_string()),
+                    kv("frames_received", total(Event::Received)),
+                    kv("frames_processed", total(PROCESSED)),
+                    kv("frames_dropped", total(Event::Dropped)),
+                    kv("frames_rate_limited", total(Event::RateLimited)),
+                    kv("frames_without_marker", total(Event::NotFound)),
+                    kv("bad_messages", total(Event::Bad)),
                 ],
             }],
         }
+    }
+}
+
+/// Any processed event (for [`Stats::total`]).
+pub const PROCESSED: Event = Event::Processed {
+    processing_ms: 0.0,
+    latency_ms: 0.0,
+};
+
+fn index(event: &Event) -> usize {
+    match event {
+        Event::Received => 0,
+        Event::Processed { .. } => 1,
+        Event::Dropped => 2,
+        Event::RateLimited => 3,
+        Event::Bad => 4,
+        Event::NotFound => 5,
     }
 }
 
@@ -141,6 +259,15 @@ impl Throttle {
 mod tests {
     use super::*;
 
+    fn value(report: &DiagnosticArray, key: &str) -> String {
+        report.status[0]
+            .values
+            .iter()
+            .find(|kv| kv.key == key)
+            .map(|kv| kv.value.clone())
+            .unwrap_or_default()
+    }
+
     #[test]
     fn percentiles_and_report() {
         assert_eq!(percentile(&[], 0.5), None);
@@ -148,33 +275,60 @@ mod tests {
         assert_eq!(percentile(&v, 0.5), Some(50.0));
         assert_eq!(percentile(&v, 0.99), Some(99.0));
         assert_eq!(percentile(&v, 1.0), Some(100.0));
-        let mut stats = Stats::default();
-        for ms in [1, 2, 3, 4] {
-            stats.record_processing(Duration::from_millis(ms));
+        let t0 = Instant::now();
+        let mut stats = Stats::new(t0);
+        for ms in [1.0, 2.0, 3.0, 4.0] {
+            stats.record(t0, Event::Received);
+            stats.record(
+                t0,
+                Event::Processed {
+                    processing_ms: ms,
+                    latency_ms: ms + 1.0,
+                },
+            );
         }
-        stats.bad_messages = 2;
+        stats.record(t0, Event::Bad);
         stats.last_bad_reason = "unknown encoding `x`".into();
-        let report = stats.report("/vernier", Duration::from_secs(2));
-        let status = &report.status[0];
-        assert_eq!(status.level, diagnostic_level::WARN);
-        let get = |k: &str| {
-            status
-                .values
-                .iter()
-                .find(|kv| kv.key == k)
-                .map(|kv| kv.value.clone())
-                .unwrap_or_default()
+        let report = stats.report(t0 + Duration::from_secs(2), Time::default(), "/v", "/image");
+        assert_eq!(report.status[0].level, diagnostic_level::WARN);
+        assert_eq!(value(&report, "rate_hz"), "2.00");
+        assert_eq!(value(&report, "processing_ms_p50"), "2.000");
+        assert_eq!(value(&report, "processing_ms_p99"), "4.000");
+        assert_eq!(value(&report, "latency_ms_p99"), "5.000");
+        assert_eq!(value(&report, "bad_messages"), "1");
+    }
+
+    #[test]
+    fn the_level_recovers_after_a_burst_and_goes_stale_without_images() {
+        let t0 = Instant::now();
+        let mut stats = Stats::new(t0);
+        let at = |s: f64| t0 + Duration::from_secs_f64(s);
+        // Nothing yet: OK while starting, ERROR once STALE_AFTER has passed.
+        let level = |stats: &mut Stats, s: f64| {
+            stats.report(at(s), Time::default(), "/v", "/image").status[0].level
         };
-        assert_eq!(get("rate_hz"), "2.00");
-        assert_eq!(get("processing_ms_p50"), "2.000");
-        assert_eq!(get("processing_ms_p99"), "4.000");
-        assert_eq!(get("bad_messages"), "2");
-        // The next window starts empty.
-        let next = stats.report("/vernier", Duration::from_secs(1));
-        assert!(next.status[0]
-            .values
-            .iter()
-            .any(|kv| kv.key == "rate_hz" && kv.value == "0.00"));
+        assert_eq!(level(&mut stats, 1.0), diagnostic_level::OK);
+        assert_eq!(level(&mut stats, 3.5), diagnostic_level::ERROR);
+        // A burst of bad frames at 4 s among good frames at 10 Hz until 30 s.
+        let frames = |stats: &mut Stats, tenths: std::ops::Range<u32>| {
+            for i in tenths {
+                let t = at(f64::from(i) / 10.0);
+                stats.record(t, Event::Received);
+                if (40..50).contains(&i) {
+                    stats.record(t, Event::Bad);
+                }
+            }
+        };
+        frames(&mut stats, 40..100);
+        assert_eq!(level(&mut stats, 10.0), diagnostic_level::WARN);
+        frames(&mut stats, 100..300);
+        assert_eq!(level(&mut stats, 30.0), diagnostic_level::OK);
+        let report = stats.report(at(30.0), Time::default(), "/v", "/image");
+        assert_eq!(value(&report, "window_bad_messages"), "0");
+        assert_eq!(value(&report, "bad_messages"), "10");
+        // The camera stops: WARN after STALE_AFTER.
+        assert_eq!(level(&mut stats, 31.0), diagnostic_level::OK);
+        assert_eq!(level(&mut stats, 33.5), diagnostic_level::WARN);
     }
 
     #[test]

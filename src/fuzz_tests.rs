@@ -6,18 +6,21 @@
 //! `cargo test` runs each for a fixed number of cases with a fixed seed; a longer run of all
 //! harnesses: `bash scripts/fuzz_long.sh [CASES] [SEED]`.
 
-use std::sync::Mutex;
-
 use proptest::prelude::*;
 use proptest::test_runner::{Config, RngAlgorithm, TestCaseError, TestRng, TestRunner};
 use ros2_client::rcl_interfaces::{
     GetParametersRequest, ListParametersRequest, SetParametersRequest,
 };
-use ros2_client::ParameterValue;
 
-use crate::messages::tests::{cdr, from_cdr};
+fn cdr<T: serde::Serialize>(value: &T) -> Vec<u8> {
+    vernier_interface::cdr::body_to_cdr(value).unwrap_or_default()
+}
+
+fn from_cdr<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Option<T> {
+    vernier_interface::cdr::body_from_cdr(bytes).ok()
+}
 use crate::messages::{Header, Image};
-use crate::param_services::{self, ParameterAccess};
+use crate::param_services::{self, MemoryStore};
 use crate::params::NodeParams;
 use crate::processing::Processor;
 use crate::ros_args::{parse_params_file, RosArgs};
@@ -154,38 +157,6 @@ fn fuzz_ros_arguments() {
         .unwrap_or_else(|e| panic!("{e}"));
 }
 
-/// The node's parameters without DDS (the same validation as the node).
-struct Store(Mutex<NodeParams>);
-
-impl ParameterAccess for Store {
-    fn get(&self, name: &str) -> Option<ParameterValue> {
-        self.0.lock().ok()?.values().get(name).cloned()
-    }
-    fn names(&self) -> Vec<String> {
-        self.0
-            .lock()
-            .map(|p| p.values().keys().cloned().collect())
-            .unwrap_or_default()
-    }
-    fn set(&self, name: &str, value: ParameterValue) -> Result<(), String> {
-        let mut params = self.0.lock().map_err(|e| e.to_string())?;
-        *params = params.with(name, &value)?;
-        Ok(())
-    }
-    fn validate_all(&self, changes: &[(String, ParameterValue)]) -> Result<(), String> {
-        let mut params = self.0.lock().map_err(|e| e.to_string())?.clone();
-        for (name, value) in changes {
-            params = params.with(name, value)?;
-        }
-        Ok(())
-    }
-}
-
-fn period_params() -> NodeParams {
-    NodeParams::from_overrides(&[("period".into(), ParameterValue::Double(10.0))])
-        .unwrap_or_else(|e| panic!("{e}"))
-}
-
 #[test]
 fn fuzz_cdr_messages() {
     let image = Image {
@@ -210,8 +181,13 @@ fn fuzz_cdr_messages() {
             depth: 2,
         }),
     ];
-    let mut processor = Processor::new(period_params(), 0).unwrap_or_else(|e| panic!("{e}"));
-    let store = Store(Mutex::new(period_params()));
+    let store = MemoryStore::with_period();
+    let params = store
+        .0
+        .lock()
+        .map(|p| p.clone())
+        .unwrap_or_else(|e| panic!("{e}"));
+    let mut processor = Processor::new(params, 0).unwrap_or_else(|e| panic!("{e}"));
     let strategy = (
         0..seeds.len(),
         proptest::collection::vec((any::<u16>(), any::<u8>()), 0..12),

@@ -1,39 +1,46 @@
 //! The ROS 2 node: DDS entities (`ros2-client` / `rustdds`), threads and publishing.
 //!
 //! Threads, data flowing one way:
-//! * **receiver**: takes `sensor_msgs/Image` samples from `image` (best-effort, keep-last 1),
-//!   rejects bad ones (counted, throttled warning) and puts the good one in a one-frame slot;
-//!   a frame still in the slot is replaced and counted as dropped, so frames never queue;
-//! * **worker**: takes the slot's frame, runs [`Processor::process`] and publishes every
-//!   output with the image stamp;
+//! * **receiver**: takes `sensor_msgs/Image` samples from `image` (or
+//!   `sensor_msgs/CompressedImage` from `image/compressed` with `image_transport:=compressed`;
+//!   QoS from `image_qos` and `qos_overrides`), rejects bad ones (counted, throttled warning)
+//!   and puts the good one in a one-frame slot; a frame still in the slot is replaced and
+//!   counted as dropped, so frames never queue;
+//! * **worker**: takes the slot's frame, decompresses it if needed, runs
+//!   [`Processor::process`] and publishes every output with the image stamp;
 //! * **spinner**: ros2-client's graph bookkeeping (discovery, `/clock`);
 //! * **parameters**: serves the parameter services (`ros2 param get/set/list/describe`) in the
 //!   request/reply mapping of the middleware named by `RMW_IMPLEMENTATION`
 //!   ([`crate::param_services`]);
-//! * **main**: publishes `/diagnostics` about once a second and watches whether anyone
-//!   subscribes to `~/debug_image`.
+//! * **main**: publishes `/diagnostics` about once a second (sliding window, stamped with the
+//!   node's clock: `/clock` under `use_sim_time`) and watches whether anyone subscribes to
+//!   `~/debug_image`.
+//!
+//! Warnings and errors also go to `/rosout` ([`RosoutLogger`]).
 //!
 //! Parameter changes are validated ([`NodeParams::with`], rejected with a reason) and take
 //! effect on the next frame.
 
-use crate::diagnostics::{Stats, Throttle};
+use crate::diagnostics::{Event, Stats, Throttle};
 use crate::messages::{
-    DiagnosticArray, Image, MarkerPoseArray, PoseStamped, RosMessage, TfMessage,
+    Clock, CompressedImage, Detection3DArray, DiagnosticArray, Image, MarkerPoseArray, PoseStamped,
+    PoseWithCovarianceStamped, RosType, TfMessage, Time,
 };
 use crate::param_services::{mapping_for_rmw, ParameterAccess, ParameterServices};
-use crate::params::NodeParams;
-use crate::processing::{annotate, FrameOutput, Processor};
+use crate::params::{ImageQos, NodeParams, QosDurability, QosHistory, QosReliability};
+use crate::processing::{annotate, FrameOutput, Processor, DEFAULT_CAMERA_FRAME};
 use crate::ros_args::{fully_qualified, RosArgs};
 use log::{error, info, warn};
 use ros2_client::qos::{Durability, History, Reliability, WhenFull};
 use ros2_client::{
-    Context, ContextOptions, Name, Node, NodeName, NodeOptions, ParameterValue, Publisher,
-    QosProfile, Subscription,
+    Context, ContextOptions, MessageTypeName, Name, Node, NodeName, NodeOptions, ParameterValue,
+    Publisher, QosProfile, Subscription,
 };
+use ros2_client::{NodeLoggingHandle, RosoutRaw};
 use std::collections::btree_map::Entry;
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, OnceLock};
 use std::time::{Duration, Instant};
 
 /// Node name when `__node:=` is not given.
@@ -51,11 +58,16 @@ vernier_ros detector: ROS 2 node measuring marker poses in sensor_msgs/Image fra
 usage: detector [--help] --ros-args [--params-file FILE] [-p name:=value]... [-r from:=to]...
                 [-r __ns:=/namespace] [-r __node:=name] [--log-level LEVEL]
 
-Subscribes: image (sensor_msgs/Image)
-Publishes:  ~/markers (vernier_ros/MarkerPoseArray), ~/marker_<id>/pose and
-            ~/relative/marker_<a>_<b>/pose (geometry_msgs/PoseStamped), /tf,
-            /diagnostics, ~/debug_image (only while subscribed)
-Parameters: see params/detector.yaml. The DDS domain is ROS_DOMAIN_ID (default 0).";
+Subscribes: image (sensor_msgs/Image), or image/compressed (sensor_msgs/CompressedImage)
+            with -p image_transport:=compressed
+Publishes:  ~/detections (vision_msgs/Detection3DArray), ~/markers
+            (vernier_ros/MarkerPoseArray), ~/marker_<id>/pose (geometry_msgs/PoseStamped),
+            ~/marker_<id>/pose_with_covariance (geometry_msgs/PoseWithCovarianceStamped),
+            ~/relative/marker_<a>_<b>/pose, /tf, /diagnostics, /rosout,
+            ~/debug_image (only while subscribed)
+Parameters: see params/detector.yaml; also use_sim_time and
+            qos_overrides./<image topic>.subscription.reliability|history|depth|durability.
+            The DDS domain is ROS_DOMAIN_ID (default 0).";
 
 /// State shared by the threads.
 struct Shared {
@@ -63,10 +75,24 @@ struct Shared {
     params: Mutex<(NodeParams, u64)>,
     stats: Mutex<Stats>,
     /// The newest frame not yet taken by the worker.
-    slot: Mutex<Option<Image>>,
+    slot: Mutex<Option<Frame>>,
     slot_filled: Condvar,
     /// Someone subscribes to `~/debug_image`.
     debug_wanted: AtomicBool,
+    /// The latest `/clock` time (zero until one arrives, as in rclcpp).
+    sim_time: Mutex<Time>,
+}
+
+/// An input message as received, with its arrival time (for the latency).
+struct Frame {
+    message: Input,
+    arrived: Instant,
+}
+
+/// The two input transports.
+enum Input {
+    Raw(Image),
+    Compressed(CompressedImage),
 }
 
 /// Locks a mutex, recovering the data if a thread panicked while holding it (the counters
@@ -75,12 +101,23 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
 }
 
-/// Quality of service of the image subscription: sensor data, newest frame only.
-fn image_qos() -> QosProfile {
-    QosProfile::subscription_default()
-        .reliability(Reliability::BestEffort)
-        .durability(Durability::Volatile)
-        .history(History::KeepLast { depth: 1 })
+/// The image subscription's QoS profile (`image_qos`, `qos_overrides`).
+fn image_qos(qos: ImageQos) -> QosProfile {
+    let profile = QosProfile::subscription_default()
+        .reliability(match qos.reliability {
+            QosReliability::Reliable => Reliability::Reliable {
+                when_full: WhenFull::Fail,
+            },
+            QosReliability::BestEffort => Reliability::BestEffort,
+        })
+        .durability(match qos.durability {
+            QosDurability::Volatile => Durability::Volatile,
+            QosDurability::TransientLocal => Durability::TransientLocal,
+        });
+    match qos.history {
+        QosHistory::KeepLast => profile.history(History::KeepLast { depth: qos.depth }),
+        QosHistory::KeepAll => profile.history(History::KeepAll),
+    }
 }
 
 /// Quality of service of the outputs: reliable, never blocking the worker.
@@ -115,7 +152,7 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
     let overrides = args
         .parameter_overrides(&namespace, &node_name)
         .map_err(|e| e.to_string())?;
-    let params = NodeParams::from_overrides(&overrides).map_err(|e| {
+    let startup = NodeParams::from_overrides(&overrides).map_err(|e| {
         if args.params_files.is_empty() {
             format!(
                 "{e} (start it with `--ros-args --params-file params/detector.yaml`, or set \
@@ -125,13 +162,16 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
             e
         }
     })?;
+    let started = Instant::now();
+    let params = startup.params;
     let processor = Processor::new(params.clone(), 0)?;
     let shared = Arc::new(Shared {
         params: Mutex::new((params.clone(), 0)),
-        stats: Mutex::new(Stats::default()),
+        stats: Mutex::new(Stats::new(started)),
         slot: Mutex::new(None),
         slot_filled: Condvar::new(),
         debug_wanted: AtomicBool::new(false),
+        sim_time: Mutex::new(Time::default()),
     });
 
     let domain_id = match std::env::var("ROS_DOMAIN_ID") {
@@ -148,13 +188,14 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
         // Served by crate::param_services instead, which also speaks Cyclone's mapping.
         .start_parameter_services(false);
     for (name, value) in params.values() {
-        options = options.declare_parameter(name, value.clone());
+        options = options.declare_parameter(name, value.clone().into());
     }
     let for_validator = Arc::clone(&shared);
     let for_action = Arc::clone(&shared);
     options = options
         .parameter_validator(Box::new(move |name, value| {
-            lock(&for_validator.params).0.with(name, value).map(|_| ())
+            let value = value.clone().into();
+            lock(&for_validator.params).0.with(name, &value).map(|_| ())
         }))
         .parameter_set_action(Box::new(move |name, value| {
             apply_parameter(&for_action, name, value)
@@ -166,14 +207,52 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
         )
         .map_err(|e| format!("cannot create node: {e:?}"))?;
     let fq_name = fully_qualified(&namespace, &node_name);
+    RosoutLogger::attach(node.logging_handle(), &node_name);
     info!("node {fq_name} on DDS domain {domain_id}");
+    // Logged once /rosout is attached, so that ROS tools see them too.
+    for ignored in &startup.ignored {
+        warn!("parameter override ignored: {ignored}");
+    }
+    if params.use_sim_time {
+        // Also in ros2-client's store, so that `ros2 param get` reports it.
+        node.set_parameter("use_sim_time", ParameterValue::Boolean(true))?;
+        info!("use_sim_time: the node's own stamps follow /clock");
+    }
+    // rosgraph_msgs/Clock, read here: ros2-client's own /clock reader expects another type.
+    // Kept for the node's life, since `ros2 param set use_sim_time true` may come later.
+    let clock: Subscription<Clock> = {
+        let qos = QosProfile::subscription_default()
+            .reliability(Reliability::BestEffort)
+            .history(History::KeepLast { depth: 1 });
+        let clock_topic = args.resolve_topic("/clock", &namespace, &node_name);
+        let t = create_topic::<Clock>(&node, &clock_topic, &qos)?;
+        node.create_subscription(&t, Some(qos))
+            .map_err(|e| format!("cannot subscribe to /clock: {e:?}"))?
+    };
 
     let topic = |name: &str| args.resolve_topic(name, &namespace, &node_name);
-    let image_topic = topic("image");
-    let subscription: Subscription<Image> = {
-        let t = create_topic::<Image>(&node, &image_topic, &image_qos())?;
-        node.create_subscription(&t, Some(image_qos()))
-            .map_err(|e| format!("cannot subscribe to {image_topic}: {e:?}"))?
+    // image_transport's compressed plugin publishes on `<base topic>/compressed`.
+    let image_topic = if params.compressed_input {
+        format!("{}/compressed", topic("image"))
+    } else {
+        topic("image")
+    };
+    let qos = image_qos(params.image_qos(&image_topic));
+    for unused in params.unused_qos_overrides(&image_topic) {
+        warn!("parameter override ignored: {unused}: the image topic is {image_topic}");
+    }
+    let receiver = if params.compressed_input {
+        let t = create_topic::<CompressedImage>(&node, &image_topic, &qos)?;
+        Receiver::Compressed(
+            node.create_subscription(&t, Some(qos))
+                .map_err(|e| format!("cannot subscribe to {image_topic}: {e:?}"))?,
+        )
+    } else {
+        let t = create_topic::<Image>(&node, &image_topic, &qos)?;
+        Receiver::Raw(
+            node.create_subscription(&t, Some(qos))
+                .map_err(|e| format!("cannot subscribe to {image_topic}: {e:?}"))?,
+        )
     };
     let names = TopicNames {
         args: args.clone(),
@@ -182,6 +261,7 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
     };
     let mut publishers = Publishers {
         markers: publisher(&mut node, &topic("~/markers"), output_qos(10))?,
+        detections: publisher(&mut node, &topic("~/detections"), output_qos(10))?,
         tf: publisher(&mut node, &topic("/tf"), output_qos(100))?,
         debug: publisher(&mut node, &topic("~/debug_image"), output_qos(1))?,
         poses: BTreeMap::new(),
@@ -198,7 +278,13 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
     let diagnostics: Publisher<DiagnosticArray> =
         publisher(&mut node, &topic("/diagnostics"), output_qos(10))?;
     info!(
-        "waiting for frames (sensor_msgs/Image) on {image_topic}; publishing on {}",
+        "waiting for frames ({}) on {image_topic}; publishing on {} and {}",
+        if params.compressed_input {
+            "sensor_msgs/CompressedImage"
+        } else {
+            "sensor_msgs/Image"
+        },
+        topic("~/detections"),
         topic("~/markers")
     );
 
@@ -231,8 +317,24 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
     {
         let shared = Arc::clone(&shared);
         std::thread::Builder::new()
+            .name("clock".into())
+            .spawn(move || loop {
+                match futures::executor::block_on(clock.async_take()) {
+                    Ok((tick, _)) => *lock(&shared.sim_time) = tick.clock,
+                    Err(ros2_client::ReadError::Closed) => return,
+                    Err(e) => warn!("bad /clock message: {e}"),
+                }
+            })
+            .map_err(|e| e.to_string())?;
+    }
+    {
+        let shared = Arc::clone(&shared);
+        std::thread::Builder::new()
             .name("receiver".into())
-            .spawn(move || receive_loop(subscription, &shared))
+            .spawn(move || match receiver {
+                Receiver::Raw(s) => receive_loop(s, &shared, check_raw),
+                Receiver::Compressed(s) => receive_loop(s, &shared, check_compressed),
+            })
             .map_err(|e| e.to_string())?;
     }
     {
@@ -246,13 +348,16 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
 
     // Main thread: diagnostics and debug-image demand.
     let debug_topic = topic("~/debug_image");
-    let mut window_start = Instant::now();
     loop {
         std::thread::sleep(DIAGNOSTICS_PERIOD);
         let wanted = lock(&node).subscription_count(&debug_topic) > 0;
         shared.debug_wanted.store(wanted, Ordering::Relaxed);
-        let report = lock(&shared.stats).report(&fq_name, window_start.elapsed());
-        window_start = Instant::now();
+        let stamp = if lock(&shared.params).0.use_sim_time {
+            *lock(&shared.sim_time)
+        } else {
+            Time::now()
+        };
+        let report = lock(&shared.stats).report(Instant::now(), stamp, &fq_name, &image_topic);
         if let Err(e) = diagnostics.publish(report) {
             warn!("cannot publish diagnostics: {e:?}");
         }
@@ -263,7 +368,7 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
 /// initial values and for `ros2 param set`).
 fn apply_parameter(shared: &Shared, name: &str, value: &ParameterValue) -> Result<(), String> {
     let mut guard = lock(&shared.params);
-    let updated = guard.0.with(name, value)?;
+    let updated = guard.0.with(name, &value.clone().into())?;
     if updated != guard.0 {
         info!("parameter {name} = {value:?} (applies from the next frame)");
         guard.0 = updated;
@@ -294,9 +399,66 @@ impl ParameterAccess for NodeParameters {
     fn validate_all(&self, changes: &[(String, ParameterValue)]) -> Result<(), String> {
         let mut params = lock(&self.shared.params).0.clone();
         for (name, value) in changes {
-            params = params.with(name, value)?;
+            params = params.with(name, &value.clone().into())?;
         }
         Ok(())
+    }
+}
+
+/// The process logger: the terminal (env_logger) for everything, and `/rosout`
+/// (`rcl_interfaces/Log`) for the node's own warnings and errors once the node exists, as
+/// rclcpp's `RCLCPP_WARN` does.
+struct RosoutLogger {
+    terminal: env_logger::Logger,
+}
+
+/// The node's `/rosout` writer and logger name, set once the node is created.
+static ROSOUT: OnceLock<(NodeLoggingHandle, String)> = OnceLock::new();
+
+impl RosoutLogger {
+    /// Sends the node's warnings and errors to `/rosout` from now on.
+    fn attach(handle: NodeLoggingHandle, node_name: &str) {
+        // A second node in one process (tests) keeps the first writer.
+        ROSOUT.set((handle, node_name.to_string())).unwrap_or(());
+    }
+}
+
+impl log::Log for RosoutLogger {
+    fn enabled(&self, metadata: &log::Metadata) -> bool {
+        self.terminal.enabled(metadata)
+    }
+
+    fn log(&self, record: &log::Record) {
+        if !self.terminal.matches(record) {
+            return;
+        }
+        self.terminal.log(record);
+        let ours = record.target().starts_with("vernier_ros") || record.target() == "detector";
+        if ours && record.level() <= log::Level::Warn {
+            if let Some((handle, name)) = ROSOUT.get() {
+                let level = if record.level() == log::Level::Error {
+                    ros2_client::log::LogLevel::Error
+                } else {
+                    ros2_client::log::LogLevel::Warn
+                };
+                let stamp =
+                    ros2_client::builtin_interfaces::Time::try_from(std::time::SystemTime::now())
+                        .unwrap_or(ros2_client::builtin_interfaces::Time::ZERO);
+                handle.rosout_raw(
+                    stamp,
+                    level,
+                    name,
+                    &record.args().to_string(),
+                    record.file().unwrap_or_default(),
+                    record.module_path().unwrap_or_default(),
+                    record.line().unwrap_or(0),
+                );
+            }
+        }
+    }
+
+    fn flush(&self) {
+        self.terminal.flush();
     }
 }
 
@@ -309,28 +471,31 @@ fn init_logging(level: Option<&str>) {
     };
     // The node's own messages at `level`; the DDS stack is chatty at info: warnings only,
     // unless RUST_LOG says otherwise.
-    let mut builder = env_logger::Builder::new();
-    builder
+    let terminal = env_logger::Builder::new()
         .filter_level(log::LevelFilter::Warn)
         .filter_module("vernier_ros", filter)
         .filter_module("detector", filter)
-        .parse_env("RUST_LOG");
+        .parse_env("RUST_LOG")
+        .build();
+    let max_level = terminal.filter();
     // A second initialisation (tests) is harmless.
-    builder.try_init().unwrap_or(());
+    if log::set_boxed_logger(Box::new(RosoutLogger { terminal })).is_ok() {
+        log::set_max_level(max_level);
+    }
 }
 
-fn create_topic<T: RosMessage>(
+fn create_topic<T: RosType>(
     node: &Node,
     absolute_name: &str,
     qos: &QosProfile,
 ) -> Result<ros2_client::dds::rustdds::Topic, String> {
     let name = Name::parse(absolute_name)
         .map_err(|e| format!("invalid topic name {absolute_name}: {e}"))?;
-    node.create_topic(&name, T::type_name(), qos)
+    node.create_topic(&name, MessageTypeName::new(T::PACKAGE, T::NAME), qos)
         .map_err(|e| format!("cannot create topic {absolute_name}: {e:?}"))
 }
 
-fn publisher<T: RosMessage>(
+fn publisher<T: RosType + ros2_client::Message>(
     node: &mut Node,
     absolute_name: &str,
     qos: QosProfile,
@@ -340,23 +505,50 @@ fn publisher<T: RosMessage>(
         .map_err(|e| format!("cannot publish on {absolute_name}: {e:?}"))
 }
 
+/// The image subscription of the chosen transport.
+enum Receiver {
+    Raw(Subscription<Image>),
+    Compressed(Subscription<CompressedImage>),
+}
+
+/// A raw image passes when its size, step and encoding agree (checked before the slot, so a
+/// bad message never displaces a good frame).
+fn check_raw(image: Image) -> Result<Input, String> {
+    crate::processing::check_image(&image).map_err(|bad| bad.0)?;
+    Ok(Input::Raw(image))
+}
+
+/// A compressed image is decoded on the worker thread; only emptiness is checked here.
+fn check_compressed(image: CompressedImage) -> Result<Input, String> {
+    if image.data.is_empty() {
+        return Err(format!("empty `{}` compressed image", image.format));
+    }
+    Ok(Input::Compressed(image))
+}
+
 /// Takes image samples, rejects bad ones, keeps only the newest good one in the slot.
-fn receive_loop(subscription: Subscription<Image>, shared: &Shared) {
+fn receive_loop<M: ros2_client::Message + 'static>(
+    subscription: Subscription<M>,
+    shared: &Shared,
+    check: fn(M) -> Result<Input, String>,
+) {
     let mut bad_warning = Throttle::new(WARN_PERIOD);
     loop {
         let sample = futures::executor::block_on(subscription.async_take());
+        let arrived = Instant::now();
         let reason = match sample {
-            Ok((image, _info)) => match crate::processing::check_image(&image) {
-                Ok(_) => {
-                    lock(&shared.stats).received += 1;
-                    let replaced = lock(&shared.slot).replace(image).is_some();
+            Ok((message, _info)) => match check(message) {
+                Ok(message) => {
+                    lock(&shared.stats).record(arrived, Event::Received);
+                    let frame = Frame { message, arrived };
+                    let replaced = lock(&shared.slot).replace(frame).is_some();
                     if replaced {
-                        lock(&shared.stats).dropped += 1;
+                        lock(&shared.stats).record(arrived, Event::Dropped);
                     }
                     shared.slot_filled.notify_one();
                     continue;
                 }
-                Err(bad) => bad.0,
+                Err(bad) => bad,
             },
             Err(ros2_client::ReadError::Closed) => {
                 error!("image subscription closed");
@@ -364,41 +556,64 @@ fn receive_loop(subscription: Subscription<Image>, shared: &Shared) {
             }
             Err(e) => format!("undecodable message: {e}"),
         };
-        {
-            let mut stats = lock(&shared.stats);
-            stats.bad_messages += 1;
-            stats.last_bad_reason.clone_from(&reason);
-        }
-        if let Some(held_back) = bad_warning.allow(Instant::now()) {
+        record_bad(shared, arrived, reason.clone());
+        if let Some(held_back) = bad_warning.allow(arrived) {
             warn!("bad image message ignored: {reason} ({held_back} more since the last warning)");
         }
     }
 }
 
+fn record_bad(shared: &Shared, at: Instant, reason: String) {
+    let mut stats = lock(&shared.stats);
+    stats.record(at, Event::Bad);
+    stats.last_bad_reason = reason;
+}
+
 /// Output publishers; per-marker and per-pair ones are created on first use.
 struct Publishers {
     markers: Publisher<MarkerPoseArray>,
+    detections: Publisher<Detection3DArray>,
     tf: Publisher<TfMessage>,
     debug: Publisher<Image>,
-    poses: BTreeMap<u64, Publisher<PoseStamped>>,
+    poses: BTreeMap<u64, MarkerPublishers>,
     relative: BTreeMap<(u64, u64), Publisher<PoseStamped>>,
 }
 
+/// `~/marker_<id>/pose` and `~/marker_<id>/pose_with_covariance`.
+struct MarkerPublishers {
+    pose: Publisher<PoseStamped>,
+    with_covariance: Publisher<PoseWithCovarianceStamped>,
+}
+
 impl Publishers {
-    /// The publisher of `~/marker_<id>/pose`, created on first use.
+    /// The publishers of marker `id`, created on first use.
     fn pose(
         &mut self,
         id: u64,
         node: &mut Node,
         names: &TopicNames,
-    ) -> Result<&Publisher<PoseStamped>, String> {
+    ) -> Result<&MarkerPublishers, String> {
         Ok(match self.poses.entry(id) {
             Entry::Occupied(e) => e.into_mut(),
             Entry::Vacant(e) => {
                 let name = names.resolve(&format!("~/marker_{id}/pose"));
-                e.insert(publisher(node, &name, output_qos(10))?)
+                let pose = publisher(node, &name, output_qos(10))?;
+                let name = names.resolve(&format!("~/marker_{id}/pose_with_covariance"));
+                let with_covariance = publisher(node, &name, output_qos(10))?;
+                e.insert(MarkerPublishers {
+                    pose,
+                    with_covariance,
+                })
             }
         })
+    }
+
+    /// Publishers of IDs not listed in `marker_ids` (the bounded ones).
+    fn unlisted(&self, params: &NodeParams) -> usize {
+        self.poses
+            .keys()
+            .filter(|id| !params.marker_ids.contains(id))
+            .count()
     }
 
     /// The publisher of `~/relative/marker_<a>_<b>/pose`, created on first use (ROS name
@@ -444,13 +659,14 @@ fn work_loop(
 ) {
     let mut not_found_warning = Throttle::new(WARN_PERIOD);
     let mut publish_warning = Throttle::new(WARN_PERIOD);
+    let mut frame_warning = Throttle::new(WARN_PERIOD);
     let mut last_start: Option<Instant> = None;
     loop {
-        let image = {
+        let frame = {
             let mut slot = lock(&shared.slot);
             loop {
-                if let Some(image) = slot.take() {
-                    break image;
+                if let Some(frame) = slot.take() {
+                    break frame;
                 }
                 slot = shared
                     .slot_filled
@@ -472,22 +688,36 @@ fn work_loop(
         if max_rate > 0.0 {
             if let Some(last) = last_start {
                 if start.duration_since(last).as_secs_f64() < 1.0 / max_rate {
-                    lock(&shared.stats).rate_limited += 1;
+                    lock(&shared.stats).record(start, Event::RateLimited);
                     continue;
                 }
             }
         }
         last_start = Some(start);
-        let (output, grey) = match processor.process(&image) {
+        let processed = match &frame.message {
+            Input::Raw(image) => processor.process(image),
+            Input::Compressed(image) => processor.process_compressed(image),
+        };
+        let (output, grey) = match processed {
             Ok(done) => done,
             Err(bad) => {
-                // check_image passed in the receiver, so conversion cannot fail; count it anyway.
-                let mut stats = lock(&shared.stats);
-                stats.bad_messages += 1;
-                stats.last_bad_reason = bad.0;
+                // A compressed image that does not decode, or one above max_image_pixels.
+                if let Some(held_back) = not_found_warning.allow(start) {
+                    warn!("bad image ignored: {bad} ({held_back} more since the last warning)");
+                }
+                record_bad(shared, start, bad.0);
                 continue;
             }
         };
+        if output.frame_defaulted {
+            if let Some(held_back) = frame_warning.allow(start) {
+                warn!(
+                    "the image has an empty header.frame_id and camera_frame is not set: \
+                     publishing in frame `{DEFAULT_CAMERA_FRAME}` ({held_back} more since the \
+                     last warning)"
+                );
+            }
+        }
         if let Some(reason) = &output.detect_error {
             if let Some(held_back) = not_found_warning.allow(start) {
                 warn!("no marker found: {reason} ({held_back} more since the last warning)");
@@ -502,10 +732,18 @@ fn work_loop(
             }
         }
         {
+            let now = Instant::now();
             let mut stats = lock(&shared.stats);
-            stats.record_processing(start.elapsed());
+            let ms = |d: Duration| d.as_secs_f64() * 1e3;
+            stats.record(
+                now,
+                Event::Processed {
+                    processing_ms: ms(now.duration_since(start)),
+                    latency_ms: ms(now.duration_since(frame.arrived)),
+                },
+            );
             if output.detect_error.is_some() {
-                stats.not_found += 1;
+                stats.record(now, Event::NotFound);
             }
         }
         if let Some(first) = failures.first() {
@@ -525,14 +763,30 @@ fn publish(
     params: &NodeParams,
 ) -> Vec<String> {
     let mut failures = Vec::new();
-    // Per-marker poses before the array: a controller reading the array sees them all sent.
-    for (id, pose) in &output.poses {
+    // Per-marker poses before the arrays: a controller reading an array sees them all sent.
+    for ((id, pose), (_, with_covariance)) in output.poses.iter().zip(&output.poses_with_covariance)
+    {
+        if !publishers.poses.contains_key(id)
+            && !params.marker_ids.contains(id)
+            && publishers.unlisted(params) >= params.max_marker_publishers
+        {
+            failures.push(format!(
+                "marker {id}: max_marker_publishers ({}) reached, its pose is only in \
+                 ~/markers and ~/detections",
+                params.max_marker_publishers
+            ));
+            continue;
+        }
         let result = match publishers.poses.get(id) {
-            Some(p) => p.publish(pose.clone()).map_err(|e| format!("{e:?}")),
-            None => publishers
-                .pose(*id, &mut lock(node), names)
-                .and_then(|p| p.publish(pose.clone()).map_err(|e| format!("{e:?}"))),
-        };
+            Some(p) => Ok(p),
+            None => publishers.pose(*id, &mut lock(node), names),
+        }
+        .and_then(|p| {
+            p.pose.publish(pose.clone()).map_err(|e| format!("{e:?}"))?;
+            p.with_covariance
+                .publish(with_covariance.clone())
+                .map_err(|e| format!("{e:?}"))
+        });
         if let Err(e) = result {
             failures.push(format!("marker {id} pose: {e}"));
         }
@@ -552,6 +806,9 @@ fn publish(
         if let Err(e) = publishers.tf.publish(output.tf.clone()) {
             failures.push(format!("/tf: {e:?}"));
         }
+    }
+    if let Err(e) = publishers.detections.publish(output.detections.clone()) {
+        failures.push(format!("detections: {e:?}"));
     }
     if let Err(e) = publishers.markers.publish(output.markers.clone()) {
         failures.push(format!("markers: {e:?}"));

@@ -154,7 +154,8 @@ pub fn list_parameters(
     result
 }
 
-/// `describe_parameters`: type and the documented description (params/detector.yaml's).
+/// `describe_parameters`: type, description, unit and range from the schema
+/// ([`crate::params::specs`]), and whether it is read-only.
 pub fn describe_parameters(
     access: &dyn ParameterAccess,
     request: &DescribeParametersRequest,
@@ -165,18 +166,13 @@ pub fn describe_parameters(
         .iter()
         .map(|name| {
             let value = access.get(name);
-            let description = specs
-                .iter()
-                .find(|s| s.name == name)
-                .map(|s| s.description.to_string())
-                .unwrap_or_else(|| {
-                    if value.is_some() {
-                        String::new()
-                    } else {
-                        "unknown parameter".into()
-                    }
-                });
-            raw::ParameterDescriptor {
+            let spec = specs.iter().find(|s| s.name == name);
+            let description = match (spec, &value) {
+                (Some(s), _) => s.description.to_string(),
+                (None, Some(_)) => String::new(),
+                (None, None) => "unknown parameter".into(),
+            };
+            let mut descriptor = raw::ParameterDescriptor {
                 name: name.clone(),
                 r#type: value.as_ref().map_or(
                     raw::ParameterType::NOT_SET,
@@ -184,13 +180,48 @@ pub fn describe_parameters(
                 ),
                 description,
                 additional_constraints: String::new(),
-                read_only: value.is_none(),
+                read_only: value.is_none() || spec.is_some_and(|s| s.read_only),
                 dynamic_typing: false,
                 floating_point_range: Vec::new(),
                 integer_range: Vec::new(),
+            };
+            if let Some(spec) = spec {
+                describe_range(spec, &mut descriptor);
             }
+            descriptor
         })
         .collect()
+}
+
+/// Unit and range into a descriptor. rcl enforces a range on `[from, to]`, so a parameter
+/// where 0 means "default" reports `[0, max]` and states the gap in the constraints.
+fn describe_range(spec: &crate::params::ParamSpec, d: &mut raw::ParameterDescriptor) {
+    let mut constraints = Vec::new();
+    if !spec.unit.is_empty() {
+        constraints.push(format!("unit: {}", spec.unit));
+    }
+    if let Some(r) = spec.range {
+        let from = if r.zero_means_default { 0.0 } else { r.min };
+        if r.zero_means_default {
+            constraints.push(format!("0 = default, else {}..={}", r.min, r.max));
+        }
+        match spec.default {
+            crate::params::ParamValue::Integer(_) => d.integer_range.push(raw::IntegerRange {
+                from_value: from as i64,
+                to_value: r.max.min(i64::MAX as f64) as i64,
+                step: 0,
+            }),
+            _ => d.floating_point_range.push(raw::FloatingPointRange {
+                from_value: from,
+                to_value: r.max,
+                step: 0.0,
+            }),
+        }
+    }
+    if spec.read_only {
+        constraints.push("read at start-up".into());
+    }
+    d.additional_constraints = constraints.join("; ");
 }
 
 /// The six servers of one node.
@@ -384,40 +415,56 @@ impl ParameterServices {
     }
 }
 
+/// The node's parameters without DDS, with the node's validation: what the tests serve.
+#[cfg(test)]
+pub(crate) struct MemoryStore(pub std::sync::Mutex<crate::params::NodeParams>);
+
+#[cfg(test)]
+impl MemoryStore {
+    /// Defaults with a 10 µm period.
+    pub(crate) fn with_period() -> MemoryStore {
+        let startup = crate::params::NodeParams::from_overrides(&[(
+            "period".into(),
+            crate::params::ParamValue::Double(10.0),
+        )]);
+        MemoryStore(std::sync::Mutex::new(
+            startup.map(|s| s.params).unwrap_or_else(|e| panic!("{e}")),
+        ))
+    }
+}
+
+#[cfg(test)]
+impl ParameterAccess for MemoryStore {
+    fn get(&self, name: &str) -> Option<ParameterValue> {
+        let params = self.0.lock().ok()?;
+        params.values().get(name).cloned().map(Into::into)
+    }
+    fn names(&self) -> Vec<String> {
+        self.0
+            .lock()
+            .map(|p| p.values().keys().cloned().collect())
+            .unwrap_or_default()
+    }
+    fn set(&self, name: &str, value: ParameterValue) -> Result<(), String> {
+        let mut params = self.0.lock().map_err(|e| e.to_string())?;
+        *params = params.with(name, &value.into())?;
+        Ok(())
+    }
+    fn validate_all(&self, changes: &[(String, ParameterValue)]) -> Result<(), String> {
+        let mut params = self.0.lock().map_err(|e| e.to_string())?.clone();
+        for (name, value) in changes {
+            params = params.with(name, &value.clone().into())?;
+        }
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::params::NodeParams;
-    use std::sync::Mutex;
 
-    /// The node's parameters without DDS: same validation as the node.
-    struct Store(Mutex<NodeParams>);
-
-    impl ParameterAccess for Store {
-        fn get(&self, name: &str) -> Option<ParameterValue> {
-            self.0.lock().unwrap().values().get(name).cloned()
-        }
-        fn names(&self) -> Vec<String> {
-            self.0.lock().unwrap().values().keys().cloned().collect()
-        }
-        fn set(&self, name: &str, value: ParameterValue) -> Result<(), String> {
-            let mut params = self.0.lock().unwrap();
-            *params = params.with(name, &value)?;
-            Ok(())
-        }
-        fn validate_all(&self, changes: &[(String, ParameterValue)]) -> Result<(), String> {
-            let mut params = self.0.lock().unwrap().clone();
-            for (name, value) in changes {
-                params = params.with(name, value)?;
-            }
-            Ok(())
-        }
-    }
-
-    fn store() -> Store {
-        Store(Mutex::new(
-            NodeParams::from_overrides(&[("period".into(), ParameterValue::Double(10.0))]).unwrap(),
-        ))
+    fn store() -> MemoryStore {
+        MemoryStore::with_period()
     }
 
     fn param(name: &str, value: ParameterValue) -> raw::Parameter {
@@ -543,13 +590,25 @@ mod tests {
         let described = describe_parameters(
             &s,
             &DescribeParametersRequest {
-                names: vec!["period".into(), "nope".into()],
+                names: vec![
+                    "period".into(),
+                    "nope".into(),
+                    "window_size".into(),
+                    "image_transport".into(),
+                ],
             },
         );
         assert_eq!(described[0].r#type, raw::ParameterType::DOUBLE);
         assert!(described[0].description.contains("period"));
         assert!(!described[0].read_only);
+        let range = &described[0].floating_point_range;
+        assert_eq!((range[0].from_value, range[0].to_value), (0.0, 1e6));
+        assert!(described[0].additional_constraints.contains("0 = default"));
         assert_eq!(described[1].r#type, raw::ParameterType::NOT_SET);
         assert!(described[1].read_only);
+        let window = &described[2];
+        assert_eq!(window.integer_range[0].to_value, 32_768);
+        assert!(window.additional_constraints.contains("unit: px"));
+        assert!(described[3].read_only);
     }
 }

@@ -151,12 +151,17 @@ class RosPeer:
         return False
 
     def take_all(self, reader):
-        out = []
-        while True:
-            batch = reader.take(N=100)
-            if not batch:
-                return out
-            out.extend(batch)
+        return take_all(reader)
+
+
+def take_all(reader):
+    """Every sample waiting in `reader`."""
+    out = []
+    while True:
+        batch = reader.take(N=100)
+        if not batch:
+            return out
+        out.extend(batch)
 
 
 class ParamClient:

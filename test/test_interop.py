@@ -26,7 +26,18 @@ and `relative_pairs:=['a:b']`:
   * `~/relative/marker_<a>_<b>/pose` (frame `vernier_marker_<a>`) is the pose of b in a's
     frame composed from the two published poses (to 1e-12 m) and matches the truth within
     2e-3 px plus what the scale and yaw tolerances allow over the markers' distances;
-and last with a third node started with RMW_IMPLEMENTATION=rmw_cyclonedds_cpp, called the way
+then with a third node in an ordinary ROS 2 graph (`ros_graph_session`): `use_sim_time:=true`
+with a Python `/clock` publisher, an undeclared override, `image_transport:=compressed`, and a
+reliable subscription through `qos_overrides./image/compressed.subscription.reliability`:
+  * a best-effort image writer does not match the node's reliable reader, a reliable one does;
+  * PNG and JPEG `sensor_msgs/CompressedImage` frames with an empty frame_id give the truth
+    on `~/marker_0/pose_with_covariance` and `~/detections`, in frame `camera`; the
+    `vision_msgs/Detection3DArray` is re-decoded with the standard definitions (PyPI
+    rosbags' Jazzy store plus vision_msgs' upstream layouts, test/standard_types.py);
+  * /diagnostics is stamped with /clock time, turns WARN on a burst of bad frames and
+    recovers to OK once the burst has left its 10 s window;
+  * /rosout carries the node's warnings (the ignored override, the empty frame_id);
+and last with a fourth node started with RMW_IMPLEMENTATION=rmw_cyclonedds_cpp, called the way
 `ros2 param` on that middleware calls it (Cyclone's request header, test/cyclone_params.py):
 get, a rejected and an accepted set, list and describe.
 
@@ -47,6 +58,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import harness  # noqa: E402
 import param_mapping_check  # noqa: E402
 import ros2_types as t  # noqa: E402
+import ros_graph_check  # noqa: E402
 
 SIZE = 1024
 PERIOD_UM = 10.0
@@ -114,11 +126,14 @@ def main():
         print_log_tail(work / "node.log")
     # The HP code node on its own domain: nothing of the first node's discovery lingers.
     run_hpcode_session(domain % 200 + 1, work / "hpcode")
+    # Sim time, compressed input, QoS overrides, standard messages, /rosout.
+    ros_graph_check.run_session((domain + 2) % 200 + 1, work / "graph", truth, frames, check,
+                                wait_for, TOL_M, SIZE)
     # `ros2 param` from a ROS 2 install on rmw_cyclonedds, again on a domain of its own.
     cyclone_log = work / "cyclone_params.log"
     check("ros2 param get/set/list/describe in rmw_cyclonedds's service mapping",
           lambda: param_mapping_check.check_cyclone_mapping(
-              (domain + 1) % 200 + 1, cyclone_log, PERIOD_UM))
+              (domain + 3) % 200 + 1, cyclone_log, PERIOD_UM))
     if cyclone_log.exists():
         print_log_tail(cyclone_log, lines=5)
     failed = sum(1 for _, e in results if e is not None)

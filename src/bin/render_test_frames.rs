@@ -274,7 +274,7 @@ fn hpcode_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
                 m
             })
             .collect();
-        // Exactly the node's convention (src/processing.rs): aTb of the SI-scaled poses.
+        // Exactly the node's convention (vernier-interface/src/processing.rs): aTb of the SI-scaled poses.
         let a_from_b = poses[0]
             .scaled(METRES_PER_UM)
             .relative(&poses[1].scaled(METRES_PER_UM));

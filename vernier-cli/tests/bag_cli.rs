@@ -169,8 +169,15 @@ fn replays_a_rosbags_recording_to_mcap_and_csv() {
         .iter()
         .filter(|m| m["topic"] == "/vernier_detector/markers")
         .collect();
+    let on = |topic: &str| -> Vec<&serde_json::Value> {
+        messages.iter().filter(|m| m["topic"] == topic).collect()
+    };
+    let detections = on("/vernier_detector/detections");
+    let with_covariance = on("/vernier_detector/marker_0/pose_with_covariance");
     assert_eq!(poses.len(), FRAMES, "{lines}");
     assert_eq!(arrays.len(), FRAMES);
+    assert_eq!(detections.len(), FRAMES);
+    assert_eq!(with_covariance.len(), FRAMES);
     for (i, (pose, array)) in poses.iter().zip(&arrays).enumerate() {
         assert_eq!(pose["type"], "geometry_msgs/msg/PoseStamped");
         assert_eq!(array["type"], "vernier_ros/msg/MarkerPoseArray");
@@ -216,6 +223,16 @@ fn replays_a_rosbags_recording_to_mcap_and_csv() {
             "σx² in m²"
         );
         assert_eq!(cov[14].as_f64().unwrap(), 1e6, "z unobserved");
+        // The standard types carry the same pose and covariance.
+        assert_eq!(detections[i]["type"], "vision_msgs/msg/Detection3DArray");
+        let detection = &detections[i]["detections"][0];
+        assert_eq!(detection["class_id"], "0");
+        assert_eq!(detection["id"], "vernier_marker_0");
+        assert_eq!(detection["score"], marker["quality"]);
+        assert_eq!(detection["pose"], pose["pose"]);
+        assert_eq!(&detection["covariance"], &marker["covariance"]);
+        assert_eq!(with_covariance[i]["pose"], pose["pose"]);
+        assert_eq!(&with_covariance[i]["covariance"], &marker["covariance"]);
     }
 }
 

@@ -73,28 +73,6 @@ pub const MAX_YAML_DEPTH: usize = 64;
 /// Largest pattern file (JSON) read, bytes.
 pub const MAX_PATTERN_FILE_BYTES: u64 = 64 << 20;
 
-/// The parameters of the ROS node (declared in the node's `src/params.rs`, which checks that
-/// the two lists agree); `vernier bag --params` rejects any other name, as the node does.
-pub const NODE_PARAMETERS: &[&str] = &[
-    "pattern_type",
-    "pattern_file",
-    "period",
-    "period_unit",
-    "code_size",
-    "code_depth",
-    "window_size",
-    "polarity",
-    "bitmaps",
-    "marker_ids",
-    "relative_pairs",
-    "min_quality",
-    "camera_frame",
-    "marker_frame_prefix",
-    "publish_tf",
-    "max_rate",
-    "max_image_pixels",
-];
-
 /// A number as users read it: plain (`15.5`), in exponent form when tiny or huge (`5e-324`).
 fn show(v: f64) -> String {
     if v != 0.0 && v.is_finite() && !(1e-4..1e9).contains(&v.abs()) {

@@ -2,9 +2,6 @@
 //! the ROS node's parameter file, and writes the poses back as MCAP (the node's topics and
 //! message types) or as a pose table (CSV / JSON Lines).
 
-mod messages;
-mod params;
-
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
@@ -13,14 +10,15 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::Parser;
-use vernier::{Detector, GreyImage, PixelFormat};
+use vernier_interface::cdr::{from_cdr, to_cdr};
+use vernier_interface::messages::{Image, RosType};
+use vernier_interface::params::{NodeParams, ParamValue};
+use vernier_interface::processing::{FrameOutput, Processor};
+use vernier_interface::{ros_args, schemas};
 
 use crate::batch::progress_bar;
 use crate::inputs::natural_cmp;
 use crate::pose_table::{PoseRow, TableFormat, TableWriter};
-use messages::{from_cdr, to_cdr};
-use messages::{Header, Image, MarkerPose, MarkerPoseArray, Pose, PoseStamped};
-use params::{read_params, ReplayParams};
 
 /// The message type `vernier bag` reads.
 const IMAGE_TYPE: &str = "sensor_msgs/msg/Image";
@@ -109,54 +107,62 @@ enum Sink {
 struct McapSink {
     writer: mcap::Writer<BufWriter<File>>,
     namespace: String,
-    pose_schema: u16,
-    markers_channel: u16,
-    pose_channels: BTreeMap<u64, u16>,
+    /// Schema IDs by ROS type name.
+    schemas: BTreeMap<String, u16>,
+    /// Channel IDs by topic.
+    channels: BTreeMap<String, u16>,
     sequences: BTreeMap<u16, u32>,
 }
 
 impl McapSink {
     fn create(path: &Path, namespace: &str) -> Result<Self, String> {
         let file = File::create(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let mcap_error = |e: mcap::McapError| format!("{}: {e}", path.display());
-        let mut writer = mcap::WriteOptions::new()
+        let writer = mcap::WriteOptions::new()
             .profile("ros2")
             .create(BufWriter::new(file))
-            .map_err(mcap_error)?;
-        let pose_schema = writer
-            .add_schema(
-                "geometry_msgs/msg/PoseStamped",
-                "ros2msg",
-                messages::pose_stamped_schema().as_bytes(),
-            )
-            .map_err(mcap_error)?;
-        let array_schema = writer
-            .add_schema(
-                "vernier_ros/msg/MarkerPoseArray",
-                "ros2msg",
-                messages::marker_pose_array_schema().as_bytes(),
-            )
-            .map_err(mcap_error)?;
-        let namespace = namespace.trim_end_matches('/').to_string();
-        let markers_channel = writer
-            .add_channel(
-                array_schema,
-                &format!("{namespace}/markers"),
-                "cdr",
-                &BTreeMap::new(),
-            )
-            .map_err(mcap_error)?;
+            .map_err(|e| format!("{}: {e}", path.display()))?;
         Ok(McapSink {
             writer,
-            namespace,
-            pose_schema,
-            markers_channel,
-            pose_channels: BTreeMap::new(),
+            namespace: namespace.trim_end_matches('/').to_string(),
+            schemas: BTreeMap::new(),
+            channels: BTreeMap::new(),
             sequences: BTreeMap::new(),
         })
     }
 
-    fn write(&mut self, channel: u16, time_ns: u64, payload: &[u8]) -> Result<(), String> {
+    /// Writes `message` on `<namespace>/<topic>`, creating its schema and channel on first use.
+    fn write<T: RosType>(
+        &mut self,
+        topic: &str,
+        schema: fn() -> String,
+        time_ns: u64,
+        message: &T,
+    ) -> Result<(), String> {
+        let failed = |e: mcap::McapError| format!("cannot write the output: {e}");
+        let type_name = T::ros_name();
+        let schema_id = match self.schemas.get(&type_name) {
+            Some(&id) => id,
+            None => {
+                let id = self
+                    .writer
+                    .add_schema(&type_name, "ros2msg", schema().as_bytes())
+                    .map_err(failed)?;
+                self.schemas.insert(type_name, id);
+                id
+            }
+        };
+        let topic = format!("{}/{topic}", self.namespace);
+        let channel = match self.channels.get(&topic) {
+            Some(&c) => c,
+            None => {
+                let c = self
+                    .writer
+                    .add_channel(schema_id, &topic, "cdr", &BTreeMap::new())
+                    .map_err(failed)?;
+                self.channels.insert(topic, c);
+                c
+            }
+        };
         let sequence = self.sequences.entry(channel).or_insert(0);
         *sequence += 1;
         let header = mcap::records::MessageHeader {
@@ -166,40 +172,34 @@ impl McapSink {
             publish_time: time_ns,
         };
         self.writer
-            .write_to_known_channel(&header, payload)
-            .map_err(|e| format!("cannot write the output: {e}"))
+            .write_to_known_channel(&header, &to_cdr(message)?)
+            .map_err(failed)
     }
 
-    /// The frame's marker array, and one PoseStamped per marker ID (the first of duplicates).
-    fn frame(&mut self, time_ns: u64, array: &MarkerPoseArray) -> Result<(), String> {
-        self.write(self.markers_channel, time_ns, &to_cdr(array)?)?;
-        let mut done = Vec::new();
-        for m in &array.markers {
-            if done.contains(&m.id) {
-                continue;
-            }
-            done.push(m.id);
-            let channel = match self.pose_channels.get(&m.id) {
-                Some(&c) => c,
-                None => {
-                    let c = self
-                        .writer
-                        .add_channel(
-                            self.pose_schema,
-                            &format!("{}/marker_{}/pose", self.namespace, m.id),
-                            "cdr",
-                            &BTreeMap::new(),
-                        )
-                        .map_err(|e| format!("cannot write the output: {e}"))?;
-                    self.pose_channels.insert(m.id, c);
-                    c
-                }
-            };
-            let pose = PoseStamped {
-                header: array.header.clone(),
-                pose: m.pose,
-            };
-            self.write(channel, time_ns, &to_cdr(&pose)?)?;
+    /// The topics the node publishes for one frame (all but /tf and the debug image).
+    fn frame(&mut self, time_ns: u64, out: &FrameOutput) -> Result<(), String> {
+        self.write("markers", schemas::marker_pose_array, time_ns, &out.markers)?;
+        self.write(
+            "detections",
+            schemas::detection_3d_array,
+            time_ns,
+            &out.detections,
+        )?;
+        for (id, pose) in &out.poses {
+            self.write(
+                &format!("marker_{id}/pose"),
+                schemas::pose_stamped,
+                time_ns,
+                pose,
+            )?;
+        }
+        for (id, pose) in &out.poses_with_covariance {
+            let topic = format!("marker_{id}/pose_with_covariance");
+            self.write(&topic, schemas::pose_with_covariance_stamped, time_ns, pose)?;
+        }
+        for ((a, b), pose) in &out.relative {
+            let topic = format!("relative/marker_{a}_{b}/pose");
+            self.write(&topic, schemas::pose_stamped, time_ns, pose)?;
         }
         Ok(())
     }
@@ -218,99 +218,56 @@ impl McapSink {
     }
 }
 
-/// Detector, parameters and sink of a replay.
+/// The node's frame processing and the sink of a replay.
 struct Replay {
-    detector: Detector,
-    params: ReplayParams,
-    period: f64,
+    processor: Processor,
     sink: Sink,
     frame: u64,
     failures: usize,
 }
 
 impl Replay {
-    /// Processes one image message (`time_ns`: its log time).
+    /// Processes one image message (`time_ns`: its log time), exactly as the node does.
     fn image(&mut self, topic: &str, time_ns: u64, payload: &[u8]) -> Result<(), String> {
         let start = Instant::now();
         let msg: Result<Image, String> = from_cdr(payload);
-        let result = msg.as_ref().map_err(Clone::clone).and_then(|msg| {
-            let format = PixelFormat::from_ros_encoding(&msg.encoding, msg.is_bigendian != 0)
-                .ok_or_else(|| format!("unsupported image encoding `{}`", msg.encoding))?;
-            vernier::limits::check_image_pixels(
-                u64::from(msg.width),
-                u64::from(msg.height),
-                self.params.max_pixels,
-            )
-            .map_err(|e| e.to_string())?;
-            let grey = GreyImage::from_raw(
-                msg.width as usize,
-                msg.height as usize,
-                msg.step as usize,
-                format,
-                &msg.data,
-            )
-            .map_err(|e| e.to_string())?;
-            let mut markers = self.detector.detect(&grey).map_err(|e| e.to_string())?;
-            let p = &self.params;
-            markers.retain(|m| {
-                (p.marker_ids.is_empty() || p.marker_ids.contains(&m.id))
-                    && m.quality >= p.min_quality
-            });
-            vernier::detector::flag_duplicate_ids(&mut markers);
-            Ok((markers, grey.width().min(grey.height())))
-        });
+        let result = msg
+            .as_ref()
+            .map_err(Clone::clone)
+            .and_then(|msg| self.processor.process(msg).map_err(|e| e.0));
         let time_ms = start.elapsed().as_secs_f64() * 1e3;
-        let header = match &msg {
-            Ok(m) => Header {
-                stamp: m.header.stamp,
-                frame_id: if self.params.camera_frame.is_empty() {
-                    m.header.frame_id.clone()
-                } else {
-                    self.params.camera_frame.clone()
-                },
-            },
-            Err(_) => Header::default(),
+        let failure = match &result {
+            Err(e) => Some(e.clone()),
+            Ok((out, _)) => out.detect_error.clone(),
         };
-        if let Err(e) = &result {
+        if let Some(e) = &failure {
             eprintln!("vernier: {topic} message {}: skipped: {e}", self.frame);
             self.failures += 1;
         }
         match &mut self.sink {
             Sink::Table(table) => {
-                let stamp = msg.as_ref().ok().map(|m| m.header.stamp.seconds());
-                let markers = result.map(|(m, _)| m);
+                let stamp = msg.as_ref().ok().map(|m| m.header.stamp.as_secs_f64());
+                let markers = match (&result, failure) {
+                    (Ok((out, _)), None) => Ok(out.raw.clone()),
+                    (_, Some(e)) => Err(e),
+                    (Err(e), None) => Err(e.clone()),
+                };
                 let rows = PoseRow::from_result(self.frame, stamp, topic, &markers, time_ms);
                 table
                     .write(&rows)
                     .map_err(|e| format!("cannot write the output: {e}"))?;
             }
             Sink::Mcap(sink) => {
-                // Failed frames still get an (empty) array, as the node publishes them.
-                let (markers, side) = result.unwrap_or_default();
-                let scale = self.params.metres_per_unit;
-                let window = self.params.settings.window_size.unwrap_or(side) as f64;
-                let array = MarkerPoseArray {
-                    header,
-                    markers: markers
-                        .iter()
-                        .map(|m| {
-                            let si = vernier::MarkerPose {
-                                pose: m.pose.scaled(scale),
-                                ..m.clone()
-                            };
-                            MarkerPose {
-                                id: m.id,
-                                pose: Pose::from_vernier(&si.pose),
-                                pixel_size: si.pose.pixel_size,
-                                quality: m.quality,
-                                covariance: si.covariance(self.period * scale, window),
-                                duplicate_id: m.duplicate_id,
-                                decode_confidence: m.decode_confidence.unwrap_or(-1.0),
-                            }
-                        })
-                        .collect(),
+                // A bad message still gets an (empty) array, as the node publishes on loss.
+                let empty;
+                let out = match &result {
+                    Ok((out, _)) => out,
+                    Err(_) => {
+                        empty = FrameOutput::default();
+                        &empty
+                    }
                 };
-                sink.frame(time_ns, &array)?;
+                sink.frame(time_ns, out)?;
             }
         }
         self.frame += 1;
@@ -318,25 +275,51 @@ impl Replay {
     }
 }
 
+/// The node's parameters for a replay: the parameter file's entries for the node
+/// `fq_node` (the node's rules: name patterns, validation, foreign names ignored with a
+/// warning), then the command-line overrides.
+fn replay_params(args: &BagArgs) -> Result<NodeParams, String> {
+    let mut overrides = Vec::new();
+    if let Some(path) = &args.params {
+        let text = vernier::limits::read_text_bounded(
+            path,
+            vernier::limits::MAX_PARAM_FILE_BYTES,
+            "parameter file",
+        )?;
+        let fq_node = args.namespace.trim_end_matches('/');
+        let (namespace, node) = match fq_node.rsplit_once('/') {
+            Some(("", node)) => ("/", node),
+            Some((namespace, node)) => (namespace, node),
+            None => ("/", fq_node),
+        };
+        overrides = ros_args::parse_params_file(&text, namespace, node)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    if let Some(p) = &args.pattern {
+        let text = p.to_string_lossy().into_owned();
+        overrides.push(("pattern_file".into(), ParamValue::String(text)));
+    }
+    if let Some(p) = args.period {
+        overrides.push(("period".into(), ParamValue::Double(p)));
+    }
+    if let Some(p) = args.max_pixels {
+        let p = i64::try_from(p).map_err(|_| format!("--max-pixels {p} is too large"))?;
+        overrides.push(("max_image_pixels".into(), ParamValue::Integer(p)));
+    }
+    let startup = NodeParams::from_overrides(&overrides).map_err(|e| match &args.params {
+        Some(path) => format!("{}: {e}", path.display()),
+        None => e,
+    })?;
+    for ignored in &startup.ignored {
+        eprintln!("vernier: parameter ignored: {ignored}");
+    }
+    Ok(startup.params)
+}
+
 /// Runs `vernier bag`.
 pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
     let files = bag_files(&args.input)?;
-    let mut params = match &args.params {
-        Some(path) => read_params(path)?,
-        None => ReplayParams::new(),
-    };
-    if let Some(p) = &args.pattern {
-        params.settings.pattern_file = Some(p.clone());
-    }
-    if let Some(p) = args.period {
-        params.settings.period = Some(p);
-    }
-    if let Some(p) = args.max_pixels {
-        params.max_pixels = p;
-    }
-    let config = params.settings.to_config().map_err(|e| e.to_string())?;
-    let period = config.period();
-    let detector = Detector::new(config).map_err(|e| e.to_string())?;
+    let processor = Processor::new(replay_params(args)?, 0)?;
     let out = &args.output;
     let sink = match out.extension().and_then(|e| e.to_str()) {
         Some("mcap") => Sink::Mcap(Box::new(McapSink::create(out, &args.namespace)?)),
@@ -360,9 +343,7 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
         }
     };
     let mut replay = Replay {
-        detector,
-        params,
-        period,
+        processor,
         sink,
         frame: 0,
         failures: 0,

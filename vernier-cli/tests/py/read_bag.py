@@ -9,6 +9,11 @@ from pathlib import Path
 
 from rosbags.highlevel import AnyReader
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / 'test'))
+from standard_types import decode, typestore  # noqa: E402
+
+STANDARD = typestore()
+
 
 def pose(p):
     return {'position': [p.position.x, p.position.y, p.position.z],
@@ -18,12 +23,27 @@ def pose(p):
 
 with AnyReader([Path(sys.argv[1])]) as reader:
     for connection, timestamp, raw in reader.messages():
-        msg = reader.deserialize(raw, connection.msgtype)
+        if connection.msgtype.startswith('vernier_ros/'):
+            # The project's own type: decoded with the schema the file carries.
+            msg = reader.deserialize(raw, connection.msgtype)
+        else:
+            # Standard types: decoded with the upstream definitions, not the file's schema.
+            msg = decode(STANDARD, raw, connection.msgtype)
         out = {'topic': connection.topic, 'type': connection.msgtype, 'time': timestamp,
                'sec': msg.header.stamp.sec, 'nanosec': msg.header.stamp.nanosec,
                'frame_id': msg.header.frame_id}
         if connection.msgtype == 'geometry_msgs/msg/PoseStamped':
             out['pose'] = pose(msg.pose)
+        elif connection.msgtype == 'geometry_msgs/msg/PoseWithCovarianceStamped':
+            out['pose'] = pose(msg.pose.pose)
+            out['covariance'] = [float(v) for v in msg.pose.covariance]
+        elif connection.msgtype == 'vision_msgs/msg/Detection3DArray':
+            out['detections'] = [{'id': d.id, 'class_id': d.results[0].hypothesis.class_id,
+                                  'score': d.results[0].hypothesis.score,
+                                  'pose': pose(d.results[0].pose.pose),
+                                  'covariance': [float(v) for v in d.results[0].pose.covariance],
+                                  'size': [d.bbox.size.x, d.bbox.size.y, d.bbox.size.z]}
+                                 for d in msg.detections]
         else:
             out['markers'] = [{'id': int(m.id), 'pose': pose(m.pose),
                                'pixel_size': m.pixel_size, 'quality': m.quality,

@@ -8,7 +8,7 @@
 //! a bare node name, or a wildcard (`/**`, `/*/name`); nested maps give dotted names.
 //! Command-line `-p` values override parameter files, later files override earlier ones.
 
-use ros2_client::ParameterValue;
+use crate::params::ParamValue;
 use std::path::PathBuf;
 use yaml_rust2::Yaml;
 
@@ -29,7 +29,7 @@ pub struct RosArgs {
     /// `--params-file` files, in order.
     pub params_files: Vec<PathBuf>,
     /// `-p name:=value` assignments, in order (a `node:` prefix restricts one to that node).
-    pub params: Vec<(Option<String>, String, ParameterValue)>,
+    pub params: Vec<(Option<String>, String, ParamValue)>,
     /// `-r from:=to` rules, in order (the first matching rule wins).
     pub remaps: Vec<Remap>,
     /// `__ns:=` namespace override (absolute).
@@ -177,7 +177,7 @@ impl RosArgs {
         &self,
         namespace: &str,
         node: &str,
-    ) -> Result<Vec<(String, ParameterValue)>, ArgsError> {
+    ) -> Result<Vec<(String, ParamValue)>, ArgsError> {
         let mut out = Vec::new();
         for path in &self.params_files {
             let text = vernier::limits::read_text_bounded(
@@ -201,9 +201,7 @@ impl RosArgs {
 }
 
 /// `name:=value` with an optional `node:` prefix.
-fn parse_param_assignment(
-    text: &str,
-) -> Result<(Option<String>, String, ParameterValue), ArgsError> {
+fn parse_param_assignment(text: &str) -> Result<(Option<String>, String, ParamValue), ArgsError> {
     let (lhs, value) = text
         .split_once(":=")
         .ok_or_else(|| ArgsError(format!("parameter `{text}` is not `name:=value`")))?;
@@ -221,21 +219,21 @@ fn parse_param_assignment(
             yaml_to_value(doc).map_err(|e| ArgsError(format!("parameter `{name}`: {e}")))?
         }
         // An empty value is the empty string, as in rcl.
-        None => ParameterValue::String(String::new()),
+        None => ParamValue::String(String::new()),
     };
     Ok((node, name.to_string(), value))
 }
 
 /// Converts a YAML value to a parameter value (scalars and homogeneous sequences).
-pub fn yaml_to_value(yaml: &Yaml) -> Result<ParameterValue, String> {
+pub fn yaml_to_value(yaml: &Yaml) -> Result<ParamValue, String> {
     Ok(match yaml {
-        Yaml::Boolean(b) => ParameterValue::Boolean(*b),
-        Yaml::Integer(i) => ParameterValue::Integer(*i),
-        Yaml::Real(text) => ParameterValue::Double(
+        Yaml::Boolean(b) => ParamValue::Boolean(*b),
+        Yaml::Integer(i) => ParamValue::Integer(*i),
+        Yaml::Real(text) => ParamValue::Double(
             yaml.as_f64()
                 .ok_or_else(|| format!("`{text}` is not a number"))?,
         ),
-        Yaml::String(s) => ParameterValue::String(s.clone()),
+        Yaml::String(s) => ParamValue::String(s.clone()),
         Yaml::Array(items) => array_value(items)?,
         Yaml::Null => return Err("no value (null)".into()),
         Yaml::Hash(_) => return Err("a map is not a parameter value".into()),
@@ -243,19 +241,19 @@ pub fn yaml_to_value(yaml: &Yaml) -> Result<ParameterValue, String> {
     })
 }
 
-fn array_value(items: &[Yaml]) -> Result<ParameterValue, String> {
+fn array_value(items: &[Yaml]) -> Result<ParamValue, String> {
     let all = |f: fn(&Yaml) -> bool| items.iter().all(f);
     if items.is_empty() {
         // The type of an empty list is unknown: the declared type decides (see params.rs).
-        return Ok(ParameterValue::StringArray(Vec::new()));
+        return Ok(ParamValue::StringArray(Vec::new()));
     }
     if all(|y| matches!(y, Yaml::Boolean(_))) {
-        return Ok(ParameterValue::BooleanArray(
+        return Ok(ParamValue::BooleanArray(
             items.iter().filter_map(Yaml::as_bool).collect(),
         ));
     }
     if all(|y| matches!(y, Yaml::Integer(_))) {
-        return Ok(ParameterValue::IntegerArray(
+        return Ok(ParamValue::IntegerArray(
             items.iter().filter_map(Yaml::as_i64).collect(),
         ));
     }
@@ -267,10 +265,10 @@ fn array_value(items: &[Yaml]) -> Result<ParameterValue, String> {
                 other => other.as_f64().ok_or("not a number in a number list")?,
             });
         }
-        return Ok(ParameterValue::DoubleArray(out));
+        return Ok(ParamValue::DoubleArray(out));
     }
     if all(|y| matches!(y, Yaml::String(_))) {
-        return Ok(ParameterValue::StringArray(
+        return Ok(ParamValue::StringArray(
             items
                 .iter()
                 .filter_map(|y| y.as_str().map(String::from))
@@ -285,8 +283,8 @@ pub fn parse_params_file(
     text: &str,
     namespace: &str,
     node: &str,
-) -> Result<Vec<(String, ParameterValue)>, ArgsError> {
-    let docs = vernier::limits::load_yaml(text).map_err(ArgsError)?;
+) -> Result<Vec<(String, ParamValue)>, ArgsError> {
+    let docs = vernier::limits::load_yaml(text).map_err(|e| ArgsError(format!("bad YAML: {e}")))?;
     let fq_node = fully_qualified(namespace, node);
     let mut out = Vec::new();
     for doc in &docs {
@@ -318,7 +316,7 @@ pub fn parse_params_file(
 fn flatten_params(
     prefix: &str,
     yaml: &Yaml,
-    out: &mut Vec<(String, ParameterValue)>,
+    out: &mut Vec<(String, ParamValue)>,
 ) -> Result<(), ArgsError> {
     let Yaml::Hash(entries) = yaml else {
         return err("`ros__parameters` must be a map");
@@ -450,22 +448,22 @@ mod tests {
         assert_eq!(
             args.params,
             vec![
-                (None, "period".into(), ParameterValue::Double(4.0)),
+                (None, "period".into(), ParamValue::Double(4.0)),
                 (
                     None,
                     "marker_ids".into(),
-                    ParameterValue::IntegerArray(vec![1, 2])
+                    ParamValue::IntegerArray(vec![1, 2])
                 ),
                 (
                     None,
                     "camera_frame".into(),
-                    ParameterValue::String("cam_optical".into())
+                    ParamValue::String("cam_optical".into())
                 ),
-                (None, "publish_tf".into(), ParameterValue::Boolean(false)),
+                (None, "publish_tf".into(), ParamValue::Boolean(false)),
                 (
                     None,
                     "relative_pairs".into(),
-                    ParameterValue::StringArray(vec!["0:1".into()])
+                    ParamValue::StringArray(vec!["0:1".into()])
                 ),
             ]
         );
@@ -545,13 +543,10 @@ other_node:
         assert_eq!(
             got,
             vec![
-                ("period".into(), ParameterValue::Double(4.0)),
-                (
-                    "marker_ids".into(),
-                    ParameterValue::IntegerArray(vec![3, 4])
-                ),
-                ("camera_frame".into(), ParameterValue::String("cam".into())),
-                ("nested.level".into(), ParameterValue::Integer(2)),
+                ("period".into(), ParamValue::Double(4.0)),
+                ("marker_ids".into(), ParamValue::IntegerArray(vec![3, 4])),
+                ("camera_frame".into(), ParamValue::String("cam".into())),
+                ("nested.level".into(), ParamValue::Integer(2)),
             ]
         );
         assert!(node_pattern_matches("vernier", "/vernier"));
@@ -590,9 +585,9 @@ other_node:
         assert_eq!(
             values,
             vec![
-                ("period".into(), ParameterValue::Double(4.0)),
-                ("max_rate".into(), ParameterValue::Double(10.0)),
-                ("period".into(), ParameterValue::Double(5.5)),
+                ("period".into(), ParamValue::Double(4.0)),
+                ("max_rate".into(), ParamValue::Double(10.0)),
+                ("period".into(), ParamValue::Double(5.5)),
             ]
         );
         let missing = parse(&["--ros-args", "--params-file", "/nonexistent/p.yaml"])

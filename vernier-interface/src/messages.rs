@@ -1,32 +1,34 @@
 //! ROS 2 message types the node reads and writes, as serde structs whose field order matches
-//! the `.msg` definitions, so that the OMG CDR encoding of `rustdds` is the ROS wire format.
+//! the `.msg` definitions, so that the OMG CDR encoding ([`crate::cdr`]) is the ROS wire
+//! format. The node publishes them over DDS; `vernier bag` reads and writes them in MCAP.
 //!
-//! `ros2-client` ships no message types; each struct here names its ROS type through
-//! [`RosMessage`]. Lengths are metres, angles radians, times ROS `builtin_interfaces/Time`.
+//! Each struct names its ROS type through [`RosType`]. Lengths are metres, angles radians,
+//! times ROS `builtin_interfaces/Time`. Default values are those of the `.msg` definitions
+//! (a quaternion defaults to the identity, `w = 1`).
 
-use ros2_client::{Message, MessageTypeName};
 use serde::{Deserialize, Serialize};
 
 /// A message type with its ROS package and name (`sensor_msgs` / `Image` →
 /// DDS type `sensor_msgs::msg::dds_::Image_`).
-pub trait RosMessage: Message {
+pub trait RosType: Serialize + serde::de::DeserializeOwned {
     /// ROS package that defines the type.
     const PACKAGE: &'static str;
     /// Type name inside the package.
     const NAME: &'static str;
-    /// The `ros2-client` type name.
-    fn type_name() -> MessageTypeName {
-        MessageTypeName::new(Self::PACKAGE, Self::NAME)
+    /// `package/msg/Name`, as rosbag2 and MCAP name the type.
+    fn ros_name() -> String {
+        format!("{}/msg/{}", Self::PACKAGE, Self::NAME)
     }
 }
 
 macro_rules! ros_message {
     ($t:ty, $package:literal, $name:literal) => {
-        impl Message for $t {}
-        impl RosMessage for $t {
+        impl RosType for $t {
             const PACKAGE: &'static str = $package;
             const NAME: &'static str = $name;
         }
+        #[cfg(feature = "ros2-client")]
+        impl ros2_client::Message for $t {}
     };
 }
 
@@ -57,6 +59,14 @@ impl Time {
         self.sec as f64 + self.nanosec as f64 * 1e-9
     }
 }
+
+/// `rosgraph_msgs/Clock`: the simulated time on `/clock` (`ros2 bag play --clock`, simulators).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Clock {
+    /// The current simulated time.
+    pub clock: Time,
+}
+ros_message!(Clock, "rosgraph_msgs", "Clock");
 
 /// `std_msgs/Header`: acquisition time and coordinate frame of the data.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -214,7 +224,7 @@ pub struct KeyValue {
 /// `diagnostic_msgs/DiagnosticStatus`.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct DiagnosticStatus {
-    /// 0 OK, 1 WARN, 2 ERROR, 3 STALE.
+    /// 0 OK, 1 WARN, 2 ERROR, 3 STALE ([`diagnostic_level`]).
     pub level: u8,
     /// Name of the component.
     pub name: String,
@@ -232,6 +242,8 @@ pub mod diagnostic_level {
     pub const OK: u8 = 0;
     /// Working, with problems.
     pub const WARN: u8 = 1;
+    /// Not working.
+    pub const ERROR: u8 = 2;
 }
 
 /// `diagnostic_msgs/DiagnosticArray`, published on `/diagnostics`.
@@ -300,6 +312,95 @@ impl<'de> Deserialize<'de> for Covariance36 {
     }
 }
 
+/// `sensor_msgs/CompressedImage`: a PNG or JPEG image, as image_transport's `compressed`
+/// plugin publishes it on `<image topic>/compressed`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CompressedImage {
+    /// Acquisition time and optical frame of the camera.
+    pub header: Header,
+    /// `png`, `jpeg`, or image_transport's `"<encoding>; png compressed <encoding>"` form.
+    pub format: String,
+    /// The encoded file bytes.
+    #[serde(with = "serde_bytes")]
+    pub data: Vec<u8>,
+}
+ros_message!(CompressedImage, "sensor_msgs", "CompressedImage");
+
+/// `geometry_msgs/PoseWithCovariance`: a pose and the row-major covariance of
+/// `(x, y, z, rot x, rot y, rot z)` about it, m² and rad², in the pose's parent frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PoseWithCovariance {
+    /// The pose, metres.
+    pub pose: Pose,
+    /// Row-major 6×6 covariance; 1e6 marks an unobserved axis.
+    pub covariance: Covariance36,
+}
+
+/// `geometry_msgs/PoseWithCovarianceStamped`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PoseWithCovarianceStamped {
+    /// Image stamp and the frame the pose is expressed in.
+    pub header: Header,
+    /// The pose and its covariance.
+    pub pose: PoseWithCovariance,
+}
+ros_message!(
+    PoseWithCovarianceStamped,
+    "geometry_msgs",
+    "PoseWithCovarianceStamped"
+);
+
+/// `vision_msgs/ObjectHypothesis` (vision_msgs 4, ROS 2).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ObjectHypothesis {
+    /// Class of the object: here the decimal marker ID.
+    pub class_id: String,
+    /// Confidence: here the marker quality, `[0, 1]`.
+    pub score: f64,
+}
+
+/// `vision_msgs/ObjectHypothesisWithPose`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ObjectHypothesisWithPose {
+    /// Class and score.
+    pub hypothesis: ObjectHypothesis,
+    /// Pose of the marker frame in the camera frame, with covariance.
+    pub pose: PoseWithCovariance,
+}
+
+/// `vision_msgs/BoundingBox3D`: a box centred on a pose.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct BoundingBox3D {
+    /// Centre and orientation of the box, metres.
+    pub center: Pose,
+    /// Side lengths along the box axes, metres.
+    pub size: Vector3,
+}
+
+/// `vision_msgs/Detection3D`: one marker.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Detection3D {
+    /// Image stamp and camera frame.
+    pub header: Header,
+    /// One hypothesis: the marker ID with its quality and pose.
+    pub results: Vec<ObjectHypothesisWithPose>,
+    /// The analysed window around the marker, flat (z size 0), metres.
+    pub bbox: BoundingBox3D,
+    /// The marker's TF frame name (`<marker_frame_prefix><id>`).
+    pub id: String,
+}
+
+/// `vision_msgs/Detection3DArray`, published on `~/detections` for every processed frame,
+/// empty when nothing was found.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Detection3DArray {
+    /// Image stamp and camera frame.
+    pub header: Header,
+    /// The markers found, possibly none.
+    pub detections: Vec<Detection3D>,
+}
+ros_message!(Detection3DArray, "vision_msgs", "Detection3DArray");
+
 /// `vernier_ros/MarkerPose` (msg/MarkerPose.msg): one measured marker, SI units.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct MarkerPose {
@@ -332,20 +433,13 @@ pub struct MarkerPoseArray {
 ros_message!(MarkerPoseArray, "vernier_ros", "MarkerPoseArray");
 
 #[cfg(test)]
-pub(crate) mod tests {
+mod tests {
     use super::*;
 
-    /// Little-endian CDR bytes of `value` (what DDS puts on the wire), for the tests.
-    pub(crate) fn cdr<T: Serialize>(value: &T) -> Vec<u8> {
-        ros2_client::dds::rustdds::cdr_encoding::to_vec::<T, byteorder::LittleEndian>(value)
-            .unwrap_or_default()
-    }
+    use crate::cdr::{body_from_cdr, body_to_cdr, from_cdr, to_cdr, to_cdr_big_endian};
 
-    /// `bytes` decoded from little-endian CDR, `None` if they do not decode.
-    pub(crate) fn from_cdr<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Option<T> {
-        ros2_client::dds::rustdds::cdr_encoding::from_bytes::<T, byteorder::LittleEndian>(bytes)
-            .ok()
-            .map(|(v, _)| v)
+    fn cdr<T: Serialize>(value: &T) -> Vec<u8> {
+        body_to_cdr(value).unwrap_or_default()
     }
 
     #[test]
@@ -397,8 +491,58 @@ pub(crate) mod tests {
         // header 13 (+3 padding) + sequence length 4 (+4 padding: u64 aligns to 8) + id 8
         // + pose 56 + 2 doubles 16 + 36 doubles 288 + bool 1 (+7 padding) + double 8.
         assert_eq!(bytes.len(), 16 + 4 + 4 + 8 + 56 + 16 + 288 + 1 + 7 + 8);
-        let back: MarkerPoseArray = from_cdr(&bytes).unwrap_or_default();
+        let back: MarkerPoseArray = body_from_cdr(&bytes).unwrap_or_default();
         assert_eq!(back, array);
         assert_eq!(back.markers[0].covariance.0[35], 2.5);
+    }
+
+    #[test]
+    fn image_round_trips_in_both_byte_orders() {
+        let image = Image {
+            header: Header {
+                stamp: Time {
+                    sec: 12,
+                    nanosec: 345,
+                },
+                frame_id: "camera".into(),
+            },
+            height: 2,
+            width: 3,
+            encoding: "mono8".into(),
+            is_bigendian: 0,
+            step: 3,
+            data: vec![1, 2, 3, 4, 5, 6],
+        };
+        let le = to_cdr(&image).unwrap_or_default();
+        // Hand-checked layout: header, sec, nanosec, frame_id (len 7 incl. NUL), padding.
+        assert_eq!(&le[..12], &[0, 1, 0, 0, 12, 0, 0, 0, 0x59, 1, 0, 0]);
+        assert_eq!(&le[12..23], b"\x07\0\0\0camera\0");
+        assert_eq!(from_cdr::<Image>(&le), Ok(image.clone()));
+        assert_eq!(from_cdr::<Image>(&to_cdr_big_endian(&image)), Ok(image));
+        assert!(from_cdr::<Image>(&le[..3]).is_err());
+        assert!(from_cdr::<Image>(&le[..30]).is_err());
+    }
+
+    #[test]
+    fn detection_array_layout() {
+        let array = Detection3DArray {
+            header: Header::default(),
+            detections: vec![Detection3D {
+                results: vec![ObjectHypothesisWithPose {
+                    hypothesis: ObjectHypothesis {
+                        class_id: "7".into(),
+                        score: 0.5,
+                    },
+                    ..ObjectHypothesisWithPose::default()
+                }],
+                id: "m".into(),
+                ..Detection3D::default()
+            }],
+        };
+        let bytes = cdr(&array);
+        // header 8 + empty string 5 (+3) | detections 4 | header 13 (+3) | results 4 |
+        // class_id "7" 6 (+2) | score 8 | pose 56 + cov 288 | bbox 56 + 24 | id "m" 6.
+        assert_eq!(bytes.len(), 16 + 4 + 16 + 4 + 8 + 8 + 56 + 288 + 80 + 6);
+        assert_eq!(body_from_cdr::<Detection3DArray>(&bytes), Ok(array));
     }
 }

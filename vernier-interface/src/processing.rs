@@ -6,8 +6,10 @@
 //! [`vernier::Pose::relative`], covariances [`vernier::MarkerPose::covariance`].
 
 use crate::messages::{
-    Header, Image, MarkerPose as MarkerMsg, MarkerPoseArray, Pose, PoseStamped, TfMessage,
-    Transform, TransformStamped, Vector3,
+    BoundingBox3D, CompressedImage, Detection3D, Detection3DArray, Header, Image,
+    MarkerPose as MarkerMsg, MarkerPoseArray, ObjectHypothesis, ObjectHypothesisWithPose, Pose,
+    PoseStamped, PoseWithCovariance, PoseWithCovarianceStamped, TfMessage, Transform,
+    TransformStamped, Vector3,
 };
 use crate::params::NodeParams;
 use vernier::detector::DetectorConfig;
@@ -66,14 +68,22 @@ pub fn to_grey(msg: &Image) -> Result<GreyImage, BadImage> {
     .map_err(|e| BadImage(e.to_string()))
 }
 
+/// `frame_id` of the outputs when neither `camera_frame` nor the image header names one (tf2
+/// ignores transforms with an empty frame).
+pub const DEFAULT_CAMERA_FRAME: &str = "camera";
+
 /// Everything published for one frame. All poses in metres and radians, stamped with the
 /// image stamp, expressed in the camera frame (x right, y down, z into the scene).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct FrameOutput {
     /// `~/markers`: every tracked marker (empty when none was found).
     pub markers: MarkerPoseArray,
+    /// `~/detections`: the same markers as `vision_msgs` detections (empty when none).
+    pub detections: Detection3DArray,
     /// `~/marker_<id>/pose`, one per tracked ID (the first marker when an ID repeats).
     pub poses: Vec<(u64, PoseStamped)>,
+    /// `~/marker_<id>/pose_with_covariance`, alongside each of `poses`.
+    pub poses_with_covariance: Vec<(u64, PoseWithCovarianceStamped)>,
     /// `~/relative/marker_<a>_<b>/pose`: pose of `b` in `a`'s frame, for configured pairs
     /// whose both markers were found.
     pub relative: Vec<((u64, u64), PoseStamped)>,
@@ -83,6 +93,8 @@ pub struct FrameOutput {
     pub detect_error: Option<String>,
     /// The markers as measured (pattern units), for the debug image.
     pub raw: Vec<MarkerPose>,
+    /// Neither `camera_frame` nor the image named a frame: [`DEFAULT_CAMERA_FRAME`] was used.
+    pub frame_defaulted: bool,
 }
 
 /// Keeps one detector (FFT plans, buffers) and rebuilds it when the parameters change.
@@ -138,6 +150,31 @@ impl Processor {
         )
         .map_err(|e| BadImage(e.to_string()))?;
         let grey = to_grey(msg)?;
+        Ok(self.process_grey(&msg.header, grey))
+    }
+
+    /// Processes one `sensor_msgs/CompressedImage` (PNG or JPEG, as image_transport's
+    /// `compressed` plugin publishes them; the format is found from the bytes). Its size is
+    /// checked against `max_image_pixels` from the file header, before decoding.
+    pub fn process_compressed(
+        &mut self,
+        msg: &CompressedImage,
+    ) -> Result<(FrameOutput, GreyImage), BadImage> {
+        let format = msg.format.to_ascii_lowercase();
+        if format.contains("compresseddepth") {
+            return Err(BadImage(format!(
+                "compressed depth images (`{}`) are not marker images",
+                msg.format
+            )));
+        }
+        let limits = vernier::DecodeLimits::with_max_pixels(self.params.max_image_pixels);
+        let name = std::path::Path::new("compressed image");
+        let grey = GreyImage::decode_bytes(&msg.data, name, &limits)
+            .map_err(|e| BadImage(format!("`{}` message: {e}", msg.format)))?;
+        Ok(self.process_grey(&msg.header, grey))
+    }
+
+    fn process_grey(&mut self, header: &Header, grey: GreyImage) -> (FrameOutput, GreyImage) {
         let found = self.detector.detect(&grey);
         let (mut markers, detect_error) = match found {
             Ok(markers) => (markers, None),
@@ -151,20 +188,20 @@ impl Processor {
             .window_size
             .unwrap_or(grey.width().min(grey.height())) as f64;
         let output = build_output(
-            msg,
+            header,
             markers,
             detect_error,
             params,
             self.config.period(),
             window_px,
         );
-        Ok((output, grey))
+        (output, grey)
     }
 }
 
 /// Builds the output messages of one frame from the detected markers (pattern units).
 pub fn build_output(
-    msg: &Image,
+    image_header: &Header,
     markers: Vec<MarkerPose>,
     detect_error: Option<String>,
     params: &NodeParams,
@@ -172,13 +209,16 @@ pub fn build_output(
     window_px: f64,
 ) -> FrameOutput {
     let scale = params.metres_per_unit;
-    let frame_id = if params.camera_frame.is_empty() {
-        msg.header.frame_id.clone()
-    } else {
+    let frame_id = if !params.camera_frame.is_empty() {
         params.camera_frame.clone()
+    } else if !image_header.frame_id.is_empty() {
+        image_header.frame_id.clone()
+    } else {
+        DEFAULT_CAMERA_FRAME.to_string()
     };
+    let frame_defaulted = params.camera_frame.is_empty() && image_header.frame_id.is_empty();
     let header = Header {
-        stamp: msg.header.stamp,
+        stamp: image_header.stamp,
         frame_id,
     };
     let mut out = FrameOutput {
@@ -186,7 +226,12 @@ pub fn build_output(
             header: header.clone(),
             markers: Vec::with_capacity(markers.len()),
         },
+        detections: Detection3DArray {
+            header: header.clone(),
+            detections: Vec::with_capacity(markers.len()),
+        },
         detect_error,
+        frame_defaulted,
         ..FrameOutput::default()
     };
     for m in &markers {
@@ -197,14 +242,40 @@ pub fn build_output(
         };
         let camera_from_marker = si.pose.camera_from_pattern();
         let pose = Pose::from_isometry(&camera_from_marker);
+        let with_covariance = PoseWithCovariance {
+            pose,
+            covariance: si.covariance(period * scale, window_px).into(),
+        };
+        let marker_frame = format!("{}{}", params.marker_frame_prefix, m.id);
         out.markers.markers.push(MarkerMsg {
             id: m.id,
             pose,
             pixel_size: si.pose.pixel_size,
             quality: m.quality,
-            covariance: si.covariance(period * scale, window_px).into(),
+            covariance: with_covariance.covariance,
             duplicate_id: m.duplicate_id,
             decode_confidence: m.decode_confidence.unwrap_or(-1.0),
+        });
+        // The analysed window, flat: what the measurement covers on the part.
+        let side = window_px * si.pose.pixel_size;
+        out.detections.detections.push(Detection3D {
+            header: header.clone(),
+            results: vec![ObjectHypothesisWithPose {
+                hypothesis: ObjectHypothesis {
+                    class_id: m.id.to_string(),
+                    score: m.quality,
+                },
+                pose: with_covariance,
+            }],
+            bbox: BoundingBox3D {
+                center: pose,
+                size: Vector3 {
+                    x: side,
+                    y: side,
+                    z: 0.0,
+                },
+            },
+            id: marker_frame.clone(),
         });
         if out.poses.iter().any(|(id, _)| *id == m.id) {
             continue;
@@ -216,10 +287,17 @@ pub fn build_output(
                 pose,
             },
         ));
+        out.poses_with_covariance.push((
+            m.id,
+            PoseWithCovarianceStamped {
+                header: header.clone(),
+                pose: with_covariance,
+            },
+        ));
         if params.publish_tf {
             out.tf.transforms.push(TransformStamped {
                 header: header.clone(),
-                child_frame_id: format!("{}{}", params.marker_frame_prefix, m.id),
+                child_frame_id: marker_frame,
                 transform: Transform {
                     translation: Vector3 {
                         x: pose.position.x,
@@ -299,16 +377,18 @@ pub fn annotate(grey: &GreyImage, markers: &[MarkerPose], header: &Header) -> Im
 mod tests {
     use super::*;
     use crate::messages::Time;
-    use ros2_client::ParameterValue;
+    use crate::params::ParamValue;
     use vernier::layout::PeriodicLayout;
     use vernier::render::{render, RenderOptions};
 
-    fn params(overrides: &[(&str, ParameterValue)]) -> NodeParams {
-        let owned: Vec<(String, ParameterValue)> = overrides
+    fn params(overrides: &[(&str, ParamValue)]) -> NodeParams {
+        let owned: Vec<(String, ParamValue)> = overrides
             .iter()
             .map(|(n, v)| (n.to_string(), v.clone()))
             .collect();
-        NodeParams::from_overrides(&owned).unwrap_or_else(|e| panic!("{e}"))
+        NodeParams::from_overrides(&owned)
+            .map(|s| s.params)
+            .unwrap_or_else(|e| panic!("{e}"))
     }
 
     fn mono8(width: u32, height: u32, data: Vec<u8>) -> Image {
@@ -423,8 +503,8 @@ mod tests {
     #[test]
     fn outputs_are_si_stamped_and_empty_on_loss() {
         let p = params(&[
-            ("period", ParameterValue::Double(8.0)),
-            ("camera_frame", ParameterValue::String("cam_optical".into())),
+            ("period", ParamValue::Double(8.0)),
+            ("camera_frame", ParamValue::String("cam_optical".into())),
         ]);
         let mut processor = Processor::new(p, 0).unwrap_or_else(|e| panic!("{e}"));
         let truth = vernier::Pose::planar(1.25, -2.5, 0.3, 1.0);
@@ -461,16 +541,100 @@ mod tests {
     }
 
     #[test]
+    fn detections_carry_id_quality_and_covariance() {
+        let p = params(&[("period", ParamValue::Double(8.0))]);
+        let mut processor = Processor::new(p, 0).unwrap_or_else(|e| panic!("{e}"));
+        let truth = vernier::Pose::planar(1.25, -2.5, 0.3, 1.0);
+        let mut frame = grid_frame(&truth);
+        frame.header.frame_id.clear();
+        let (out, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        assert!(out.frame_defaulted);
+        assert_eq!(out.detections.header.frame_id, DEFAULT_CAMERA_FRAME);
+        assert_eq!(out.detections.detections.len(), 1);
+        let d = &out.detections.detections[0];
+        let m = &out.markers.markers[0];
+        assert_eq!(d.results[0].hypothesis.class_id, m.id.to_string());
+        assert_eq!(d.results[0].hypothesis.score, m.quality);
+        assert_eq!(d.results[0].pose.pose, m.pose);
+        assert_eq!(d.results[0].pose.covariance, m.covariance);
+        assert_eq!(d.id, "vernier_marker_0");
+        assert!(d.bbox.size.x > 0.0 && d.bbox.size.z == 0.0);
+        assert_eq!(out.poses_with_covariance.len(), 1);
+        assert_eq!(out.poses_with_covariance[0].1.pose.covariance, m.covariance);
+        // Nothing found: the detection array is published empty, with the stamp.
+        let (empty, _) = processor
+            .process(&mono8(256, 256, vec![0; 256 * 256]))
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert!(empty.detections.detections.is_empty());
+        assert_eq!(empty.detections.header.stamp, frame.header.stamp);
+    }
+
+    #[test]
+    fn compressed_frames_give_the_raw_frames_result() {
+        let p = params(&[("period", ParamValue::Double(8.0))]);
+        let mut processor = Processor::new(p, 0).unwrap_or_else(|e| panic!("{e}"));
+        let truth = vernier::Pose::planar(0.75, 1.5, -0.2, 1.0);
+        let raw = grid_frame(&truth);
+        let (expected, _) = processor.process(&raw).unwrap_or_else(|e| panic!("{e}"));
+        let grey = image::GrayImage::from_raw(raw.width, raw.height, raw.data.clone());
+        let grey = grey.unwrap_or_else(|| panic!("bad test image"));
+        for (format, codec) in [
+            ("png", image::ImageFormat::Png),
+            ("mono8; jpeg compressed mono8", image::ImageFormat::Jpeg),
+        ] {
+            let mut bytes = std::io::Cursor::new(Vec::new());
+            grey.write_to(&mut bytes, codec)
+                .unwrap_or_else(|e| panic!("{e}"));
+            let msg = CompressedImage {
+                header: raw.header.clone(),
+                format: format.into(),
+                data: bytes.into_inner(),
+            };
+            let (out, _) = processor
+                .process_compressed(&msg)
+                .unwrap_or_else(|e| panic!("{format}: {e}"));
+            assert_eq!(out.markers.markers.len(), 1, "{format}");
+            let (a, b) = (
+                &out.markers.markers[0].pose,
+                &expected.markers.markers[0].pose,
+            );
+            let err = (a.position.x - b.position.x).hypot(a.position.y - b.position.y);
+            // PNG is lossless; JPEG moves the phase by a small fraction of a pixel (1 µm).
+            let tolerance = if codec == image::ImageFormat::Png {
+                1e-15
+            } else {
+                5e-9
+            };
+            assert!(err <= tolerance, "{format}: {err} m");
+        }
+        let garbage = CompressedImage {
+            header: raw.header.clone(),
+            format: "jpeg".into(),
+            data: vec![0xff, 0xd8, 0xff, 0x00, 1, 2, 3],
+        };
+        assert!(processor.process_compressed(&garbage).is_err());
+        let depth = CompressedImage {
+            format: "16UC1; compressedDepth png".into(),
+            ..garbage
+        };
+        let e = processor
+            .process_compressed(&depth)
+            .err()
+            .unwrap_or(BadImage(String::new()));
+        assert!(e.0.contains("depth"), "{e}");
+    }
+
+    #[test]
     fn parameter_updates_apply_to_the_next_frame() {
-        let p = params(&[("period", ParameterValue::Double(8.0))]);
+        let p = params(&[("period", ParamValue::Double(8.0))]);
         let mut processor = Processor::new(p.clone(), 0).unwrap_or_else(|e| panic!("{e}"));
         let frame = grid_frame(&vernier::Pose::planar(0.5, 0.25, 0.1, 1.0));
         let (before, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
         // Doubling the physical period doubles the measured pixel size (the image is the same).
         let q = p
-            .with("period", &ParameterValue::Double(16.0))
-            .and_then(|q| q.with("publish_tf", &ParameterValue::Boolean(false)))
-            .and_then(|q| q.with("period_unit", &ParameterValue::String("nm".into())))
+            .with("period", &ParamValue::Double(16.0))
+            .and_then(|q| q.with("publish_tf", &ParamValue::Boolean(false)))
+            .and_then(|q| q.with("period_unit", &ParamValue::String("nm".into())))
             .unwrap_or_else(|e| panic!("{e}"));
         processor.update(q, 1).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(processor.generation(), 1);
@@ -482,7 +646,7 @@ mod tests {
         // Tracking only another id publishes an empty array.
         let r = processor
             .params()
-            .with("marker_ids", &ParameterValue::IntegerArray(vec![4]))
+            .with("marker_ids", &ParamValue::IntegerArray(vec![4]))
             .unwrap_or_else(|e| panic!("{e}"));
         processor.update(r, 2).unwrap_or_else(|e| panic!("{e}"));
         let (none, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
@@ -490,7 +654,7 @@ mod tests {
         // A quality threshold above 1 is rejected before it reaches the processor.
         assert!(processor
             .params()
-            .with("min_quality", &ParameterValue::Double(2.0))
+            .with("min_quality", &ParamValue::Double(2.0))
             .is_err());
     }
 
@@ -505,9 +669,9 @@ mod tests {
         )
         .unwrap_or(());
         let file_text = file.display().to_string();
-        let p = params(&[("pattern_file", ParameterValue::String(file_text))]);
+        let p = params(&[("pattern_file", ParamValue::String(file_text))]);
         let q = p
-            .with("period", &ParameterValue::Double(16.0))
+            .with("period", &ParamValue::Double(16.0))
             .unwrap_or_else(|e| panic!("{e}"));
         let mut processor = Processor::new(p, 0).unwrap_or_else(|e| panic!("{e}"));
         // The pattern file vanishes between validation and the next frame.
@@ -524,10 +688,10 @@ mod tests {
     fn relative_pairs_give_b_in_a_frame() {
         // Two synthetic markers (as a multi-marker detector would report them), µm.
         let p = params(&[
-            ("period", ParameterValue::Double(8.0)),
+            ("period", ParamValue::Double(8.0)),
             (
                 "relative_pairs",
-                ParameterValue::StringArray(vec!["3:9".into(), "3:4".into()]),
+                ParamValue::StringArray(vec!["3:9".into(), "3:4".into()]),
             ),
         ]);
         let marker = |id: u64, pose: vernier::Pose| MarkerPose {
@@ -546,7 +710,7 @@ mod tests {
             1.0,
         );
         let out = build_output(
-            &mono8(1, 1, vec![0]),
+            &mono8(1, 1, vec![0]).header,
             vec![marker(3, a), marker(9, b)],
             None,
             &p,
@@ -574,12 +738,12 @@ mod tests {
         // frame, far from the centre: every published pose and the pair's relative pose agree
         // with the truth within the image-position (1e-3 px) and scale (1e-5) errors.
         let p = params(&[
-            ("pattern_type", ParameterValue::String("hpcode".into())),
-            ("period", ParameterValue::Double(8.0)),
-            ("code_size", ParameterValue::Integer(33)),
+            ("pattern_type", ParamValue::String("hpcode".into())),
+            ("period", ParamValue::Double(8.0)),
+            ("code_size", ParamValue::Integer(33)),
             (
                 "relative_pairs",
-                ParameterValue::StringArray(vec!["37:300".into()]),
+                ParamValue::StringArray(vec!["37:300".into()]),
             ),
         ]);
         let layout = |id| {
