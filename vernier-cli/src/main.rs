@@ -88,6 +88,13 @@ struct DetectArgs {
     /// and marker, time-series columns of vernier-cli/src/pose_table.rs).
     #[arg(long, value_enum, default_value = "json")]
     format: pose_table::TableFormat,
+    /// Also measure the out-of-plane angles `beta` (about the pattern's y axis) and `gamma`
+    /// (about its x axis), radians: 6-DoF pose, orthographic model, `z` stays 0. Megarena
+    /// only (ignored for other marker types). Of the two mirror solutions `(beta, gamma)` and
+    /// `(-beta, -gamma)` the perspective cue's choice is printed, its strength (0-1) in the
+    /// JSON as `pose_3d_cue_strength`.
+    #[arg(long = "pose-3d")]
+    pose_3d: bool,
     /// Dot polarity: `auto` (default: found per marker for HP codes and stamps, bright for
     /// periodic and Megarena), `bright` dots on a dark background or `dark` dots on a bright one.
     #[arg(long, default_value = "auto")]
@@ -229,6 +236,7 @@ fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
         window_size: args.window_size,
         polarity: args.polarity.0,
         bitmaps: args.bitmap.clone(),
+        pose_3d: args.pose_3d,
     };
     let config = settings.to_config().map_err(|e| e.to_string())?;
     let mut detector = Detector::new(config).map_err(|e| e.to_string())?;

@@ -54,6 +54,11 @@ pub struct PoseRow {
     pub time_ms: f64,
     /// Why the frame failed, if it did.
     pub error: Option<String>,
+    /// Strength of the perspective cue that chose the sign of `beta`, `gamma` (0–1), for
+    /// poses with out-of-plane angles (`detect --pose-3d`); JSON and JSON Lines only (not a
+    /// CSV column), omitted for planar poses.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_3d_cue_strength: Option<f64>,
 }
 
 /// Column names, in order.
@@ -113,6 +118,7 @@ impl PoseRow {
                         quality: Some(m.quality),
                         duplicate_id: Some(m.duplicate_id),
                         decode_confidence: m.decode_confidence,
+                        pose_3d_cue_strength: m.pose_3d_cue_strength,
                         ..base.clone()
                     }
                 })
@@ -165,7 +171,7 @@ fn csv_escape(s: &str) -> String {
 pub enum TableFormat {
     /// One JSON object per image: `image`, `markers` (each with `id`, `x`, `y`, `z`, `alpha`,
     /// `beta`, `gamma`, `pixel_size`, `x_px`, `y_px`, `quality`, `duplicate_id`,
-    /// `decode_confidence`), `time_ms`
+    /// `decode_confidence`, and `pose_3d_cue_strength` with `--pose-3d`), `time_ms`
     /// and, for a failed image, `error`.
     Json,
     /// Comma-separated values with a header line, one row per image and marker.
@@ -216,13 +222,18 @@ impl<W: Write> TableWriter<W> {
             .iter()
             .filter(|r| r.id.is_some())
             .map(|r| {
-                serde_json::json!({
+                let mut m = serde_json::json!({
                     "id": r.id, "x": r.x, "y": r.y, "z": r.z,
                     "alpha": r.alpha, "beta": r.beta, "gamma": r.gamma,
                     "pixel_size": r.pixel_size, "x_px": r.x_px, "y_px": r.y_px,
                     "quality": r.quality, "duplicate_id": r.duplicate_id,
                     "decode_confidence": r.decode_confidence,
-                })
+                });
+                // Only poses with out-of-plane angles have a cue strength.
+                if let Some(cue) = r.pose_3d_cue_strength {
+                    m["pose_3d_cue_strength"] = serde_json::json!(cue);
+                }
+                m
             })
             .collect();
         let mut object = serde_json::json!({
@@ -337,6 +348,7 @@ pub fn read_table(text: &str) -> Result<Vec<PoseRow>, String> {
             decode_confidence: number(15)?,
             time_ms: number(16)?.unwrap_or(0.0),
             error: text_field(17),
+            pose_3d_cue_strength: None,
         });
     }
     Ok(rows)
@@ -367,6 +379,7 @@ mod tests {
                 decode_confidence: Some(0.75),
                 time_ms: 12.5,
                 error: None,
+                pose_3d_cue_strength: None,
             },
             PoseRow {
                 frame: 1,

@@ -175,3 +175,88 @@ fn usage_errors_name_what_is_missing_and_where_to_read_more() {
     assert!(text.contains("Usage:") && text.contains("detect"), "{text}");
     assert!(!text.starts_with("vernier: "), "{text}");
 }
+
+#[test]
+fn detect_pose_3d_prints_the_out_of_plane_angles() {
+    use vernier::layout::MegarenaLayout;
+    use vernier::render::{render, RenderOptions};
+    // A depth-8 Megarena (P = 10) tilted by beta = 0.25, gamma = -0.15 rad (orthographic
+    // render: the sign of both angles is the mirror ambiguity's, their magnitudes are exact).
+    let dir = scratch("pose3d");
+    let image = dir.join("tilted.png");
+    let layout = MegarenaLayout::new(10.0, 8).unwrap();
+    let truth = vernier::Pose {
+        x: -3000.0,
+        y: -4200.0,
+        z: 0.0,
+        alpha: 0.6,
+        beta: 0.25,
+        gamma: -0.15,
+        pixel_size: 1.2,
+    };
+    let options = RenderOptions {
+        blur_sigma: 0.5,
+        bit_depth: Some(16),
+        ..RenderOptions::new(512, 512)
+    };
+    render(&layout, &truth, &options)
+        .unwrap()
+        .save_png(&image, 16)
+        .unwrap();
+    let detect = |extra: &[&str]| {
+        let out = vernier()
+            .args([
+                "detect",
+                "--megarena",
+                "--period",
+                "10",
+                "--code-depth",
+                "8",
+            ])
+            .args(extra)
+            .arg(&image)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8(out.stdout).unwrap()
+    };
+    let line = detect(&["--pose-3d"]);
+    let json: serde_json::Value = serde_json::from_str(line.trim()).unwrap();
+    let marker = &json["markers"][0];
+    let (beta, gamma) = (
+        marker["beta"].as_f64().unwrap(),
+        marker["gamma"].as_f64().unwrap(),
+    );
+    assert!(beta != 0.0 && gamma != 0.0, "{line}");
+    // One of the two mirror solutions (0.25, −0.15) / (−0.25, 0.15).
+    assert!((beta.abs() - 0.25).abs() < 1e-3, "{line}");
+    assert!(
+        (gamma.abs() - 0.15).abs() < 1e-3 && beta * gamma < 0.0,
+        "{line}"
+    );
+    let cue = marker["pose_3d_cue_strength"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&cue), "{line}");
+    // CSV carries the same angles.
+    let csv = detect(&["--pose-3d", "--format", "csv"]);
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let row: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let field = |name: &str| -> f64 {
+        let k = header.iter().position(|h| *h == name).unwrap();
+        row[k].parse().unwrap()
+    };
+    // (serde_json's float parsing is not correctly rounded: compare to 1e-12.)
+    assert!((field("beta") - beta).abs() < 1e-12, "{csv}");
+    assert!((field("gamma") - gamma).abs() < 1e-12, "{csv}");
+    // Without the flag: planar pose, no cue strength.
+    let line = detect(&[]);
+    let json: serde_json::Value = serde_json::from_str(line.trim()).unwrap();
+    let marker = &json["markers"][0];
+    assert_eq!(marker["beta"].as_f64(), Some(0.0), "{line}");
+    assert_eq!(marker["gamma"].as_f64(), Some(0.0), "{line}");
+    assert!(marker.get("pose_3d_cue_strength").is_none(), "{line}");
+}

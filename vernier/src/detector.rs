@@ -31,6 +31,13 @@ pub struct MarkerPose {
     pub duplicate_id: bool,
     /// Confidence of the coarse decoding in `[0, 1]` where the marker type has one.
     pub decode_confidence: Option<f64>,
+    /// `Some` when `pose` carries measured out-of-plane angles `beta`, `gamma`
+    /// ([`DetectorSettings::pose_3d`], Megarena only): the strength of the perspective cue that
+    /// chose between the two mirror solutions `(β, γ)` and `(−β, −γ)` (see
+    /// [`crate::megarena::pose3d::OutOfPlanePose::cue_strength`]: ≈ 1 for a clear cue, near 0
+    /// when the image shows no perspective and the sign of both angles is a guess). `None` for
+    /// planar poses.
+    pub pose_3d_cue_strength: Option<f64>,
 }
 
 impl MarkerPose {
@@ -41,6 +48,14 @@ impl MarkerPose {
     /// by `alpha` in the camera frame, so the position block is `Rz(α)·diag(σ_x², σ_y²)·Rz(α)ᵀ`.
     /// Yaw from the plane slopes over `window_px` pixels. Unobserved axes (z, roll, pitch for
     /// planar poses) get a variance of `1e6` (large, per ROS convention for "unknown").
+    ///
+    /// With out-of-plane angles ([`MarkerPose::pose_3d_cue_strength`] set), `cTp`'s rotation
+    /// `Rz(α)·Ry(β)·Rx(γ)` is roll `γ`, pitch `β`, yaw `α`, and the roll/pitch block is the
+    /// covariance of `(γ, β)` from
+    /// [`angle_covariance`](crate::megarena::pose3d::angle_covariance): the same slope-noise
+    /// model as the yaw, `σ_g = σ_c·√12/window_px` on each of the four phase-gradient
+    /// components, propagated numerically through the orthographic solution. It does not include
+    /// the mirror ambiguity (a wrong cue flips both signs). `z` stays unobserved (`1e6`).
     pub fn covariance(&self, period: f64, window_px: f64) -> [[f64; 6]; 6] {
         let mut cov = [[0.0; 6]; 6];
         let sx = period * self.phase_std[0] / std::f64::consts::TAU;
@@ -62,6 +77,24 @@ impl MarkerPose {
             f64::INFINITY
         };
         cov[5][5] = s_alpha * s_alpha;
+        if self.pose_3d_cue_strength.is_some() {
+            // Slope of a plane fitted over an L-pixel window from offset noise σ_c:
+            // σ_slope = σ_c·√12/L (the yaw's model), for ∂φ/∂col and ∂φ/∂row of each plane.
+            let slope = |k: usize| {
+                if window_px > 0.0 {
+                    self.phase_std[k] * 12f64.sqrt() / window_px
+                } else {
+                    f64::INFINITY
+                }
+            };
+            let angles =
+                crate::megarena::pose3d::angle_covariance(&self.pose, period, [slope(0), slope(1)]);
+            // (β, γ) → (pitch, roll) = indices (4, 3).
+            cov[4][4] = angles[0][0];
+            cov[3][3] = angles[1][1];
+            cov[3][4] = angles[0][1];
+            cov[4][3] = angles[0][1];
+        }
         cov
     }
 }
@@ -119,6 +152,22 @@ pub struct DetectorSettings {
     pub polarity: Option<crate::grey_image::Polarity>,
     /// Stamp bitmaps (PNG files, 1 = dot), in ID order.
     pub bitmaps: Vec<std::path::PathBuf>,
+    /// Measure the out-of-plane angles too (6-DoF pose, docs/design.md#pose-3d). Default
+    /// `false`: planar poses, `beta = gamma = 0`.
+    ///
+    /// Only observable for Megarena patterns (their two absolute phase planes fix the affine
+    /// map pattern → image); **ignored for the other marker types**, whose poses stay planar.
+    /// When set, each [`MarkerPose::pose`] is the orthographic out-of-plane solution:
+    /// `beta` (about the pattern's intrinsic y axis) and `gamma` (about its intrinsic x axis),
+    /// radians, in the frames of [`crate::pose`] (`cTp = Rz(α)·Ry(β)·Rx(γ)·Trans(x, y, 0)`,
+    /// camera x right, y down, z into the scene); `alpha` and `pixel_size` are then those of
+    /// the same 3-D solution (they differ from the planar ones by terms of order `β·γ`), `x`,
+    /// `y` are unchanged and `z` stays 0 (no focal length: the depth is unobserved). Of the two
+    /// mirror solutions `(β, γ)` and `(−β, −γ)`, which no orthographic image tells apart, the
+    /// one the perspective cue favours is reported, its strength in
+    /// [`MarkerPose::pose_3d_cue_strength`]; [`MarkerPose::covariance`] then gives roll and
+    /// pitch real variances.
+    pub pose_3d: bool,
 }
 
 impl DetectorSettings {
@@ -193,6 +242,7 @@ impl DetectorSettings {
                 };
                 let mut p = MegarenaParams::with_sequence(require_period()?, sequence);
                 p.polarity = self.polarity.unwrap_or_default();
+                p.pose_3d = self.pose_3d;
                 Ok(DetectorConfig::Megarena(p))
             }
             MarkerKind::HpCode => {
@@ -303,18 +353,26 @@ impl Detector {
                     phase_std: found.analysis.phase_std,
                     duplicate_id: false,
                     decode_confidence: None,
+                    pose_3d_cue_strength: None,
                 }])
             }
             Inner::Megarena(d) => {
                 let found = d.detect(image)?;
+                // With pose_3d, the chosen orthographic 3-D solution replaces the planar pose
+                // (same x, y; alpha and pixel size of the 3-D decomposition).
+                let (pose, pose_3d_cue_strength) = match &found.out_of_plane {
+                    Some(o) => (o.pose(), Some(o.cue_strength)),
+                    None => (found.pose, None),
+                };
                 Ok(vec![MarkerPose {
                     id: 0,
-                    pose: found.pose,
+                    pose,
                     origin_px: found.origin_px,
                     quality: found.analysis.quality,
                     phase_std: found.analysis.phase_std,
                     duplicate_id: false,
                     decode_confidence: Some(found.decode_confidence),
+                    pose_3d_cue_strength,
                 }])
             }
             Inner::Stamp(d) => {
@@ -332,6 +390,7 @@ impl Detector {
                         phase_std: found.analysis.phase_std,
                         duplicate_id: false,
                         decode_confidence: Some(found.decode_confidence),
+                        pose_3d_cue_strength: None,
                     })
                     .collect();
                 flag_duplicate_ids(&mut markers);
@@ -352,6 +411,7 @@ impl Detector {
                         phase_std: found.analysis.phase_std,
                         duplicate_id: false,
                         decode_confidence: Some(found.id_confidence),
+                        pose_3d_cue_strength: None,
                     })
                     .collect();
                 flag_duplicate_ids(&mut markers);
@@ -383,6 +443,7 @@ mod tests {
             phase_std,
             duplicate_id: false,
             decode_confidence: None,
+            pose_3d_cue_strength: None,
         }
     }
 
@@ -403,5 +464,34 @@ mod tests {
         assert!((diagonal[0][1] + 4.0).abs() < 1e-12 && diagonal[1][0] == diagonal[0][1]);
         // The trace does not depend on the angle.
         assert!((turned[0][0] + turned[1][1] - 10.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn out_of_plane_angles_get_a_variance_only_when_measured() {
+        let (period, window) = (10.0, 512.0);
+        let mut m = marker(0.4, [1e-3, 1e-3]);
+        let planar = m.covariance(period, window);
+        assert_eq!((planar[2][2], planar[3][3], planar[4][4]), (1e6, 1e6, 1e6));
+        m.pose.beta = 0.2;
+        m.pose.gamma = -0.1;
+        m.pose_3d_cue_strength = Some(0.9);
+        let tilted = m.covariance(period, window);
+        // Roll (γ) and pitch (β): small positive variances, symmetric correlation; z unknown.
+        assert!(tilted[3][3] > 0.0 && tilted[3][3] < 1e-4, "{tilted:?}");
+        assert!(tilted[4][4] > 0.0 && tilted[4][4] < 1e-4, "{tilted:?}");
+        assert_eq!(tilted[3][4], tilted[4][3]);
+        assert!(tilted[3][4].powi(2) <= tilted[3][3] * tilted[4][4]);
+        assert_eq!(tilted[2][2], 1e6);
+        // The position block and the yaw are those of the planar model.
+        for (i, j) in [(0, 0), (0, 1), (1, 1), (5, 5)] {
+            assert_eq!(tilted[i][j], planar[i][j]);
+        }
+        // Linear regime: twice the phase noise, four times the variance.
+        m.phase_std = [2e-3, 2e-3];
+        let noisier = m.covariance(period, window);
+        for k in [3, 4] {
+            let ratio = noisier[k][k] / tilted[k][k];
+            assert!((ratio - 4.0).abs() < 0.05, "{ratio}");
+        }
     }
 }

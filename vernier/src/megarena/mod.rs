@@ -44,6 +44,11 @@ pub struct MegarenaParams {
     pub polarity: Polarity,
     /// Phase-engine settings.
     pub phase: PhaseParams,
+    /// Also measure the out-of-plane angles (docs/design.md#pose-3d): every detection then
+    /// carries [`MegarenaDetection::out_of_plane`], the orthographic solutions with the
+    /// perspective cue's choice (`z = 0`, no focal length). Costs one demodulation pass over
+    /// the image. Default `false`.
+    pub pose_3d: bool,
 }
 
 impl MegarenaParams {
@@ -63,6 +68,7 @@ impl MegarenaParams {
             sequence,
             polarity: Polarity::BrightDots,
             phase: PhaseParams::default(),
+            pose_3d: false,
         }
     }
 
@@ -114,6 +120,9 @@ pub struct MegarenaDetection {
     /// Dots measured by the dot-wise plane refinement (0 when too few were found and the
     /// phase engine's planes were kept).
     pub refined_dots: usize,
+    /// Out-of-plane pose ([`MegarenaDetection::out_of_plane`] of the analysed image, `z = 0`)
+    /// when [`MegarenaParams::pose_3d`] is set; `None` otherwise.
+    pub out_of_plane: Option<pose3d::OutOfPlanePose>,
 }
 
 impl MegarenaDetection {
@@ -258,6 +267,16 @@ impl MegarenaDetector {
         let (cx, cy) = image.center();
         let origin_px = Vector2::new(cx as f64, cy as f64)
             + origin_offset(&pattern_planes).unwrap_or_else(|| pose.origin_in_image());
+        let out_of_plane = if self.params.pose_3d {
+            Some(pose3d::out_of_plane(
+                image,
+                &pattern_planes,
+                self.params.period,
+                None,
+            )?)
+        } else {
+            None
+        };
         Ok(MegarenaDetection {
             pose,
             origin_px,
@@ -268,6 +287,7 @@ impl MegarenaDetector {
             analysis,
             period: self.params.period,
             refined_dots,
+            out_of_plane,
         })
     }
 }
