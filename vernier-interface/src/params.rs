@@ -386,6 +386,13 @@ pub fn specs() -> Vec<ParamSpec> {
                  images (counted in /diagnostics) before any conversion.",
             )
         },
+        spec(
+            "pose_3d",
+            V::Boolean(false),
+            "Also measure the out-of-plane angles (pitch, roll) from the phase planes, with \
+             their covariance (Megarena only; other marker types ignore it and publish \
+             planar poses, pitch and roll variances 1e6).",
+        ),
         ParamSpec {
             read_only: true,
             ..spec(
@@ -710,6 +717,10 @@ impl NodeParams {
             window_size: window_size.map(|v| v as usize),
             polarity,
             bitmaps: bitmaps.iter().map(PathBuf::from).collect(),
+            pose_3d: match get("pose_3d") {
+                ParamValue::Boolean(b) => b,
+                other => return Err(format!("`pose_3d` must be a bool, got {other:?}")),
+            },
         };
         let params = NodeParams {
             values,

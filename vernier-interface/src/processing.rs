@@ -625,6 +625,67 @@ mod tests {
     }
 
     #[test]
+    fn pose_3d_publishes_tilts_with_their_covariance() {
+        let layout =
+            vernier::layout::MegarenaLayout::new(10.0, 8).unwrap_or_else(|e| panic!("{e}"));
+        let truth = vernier::Pose {
+            x: -3000.0,
+            y: -4200.0,
+            z: 0.0,
+            alpha: 0.8,
+            beta: 0.2,
+            gamma: -0.1,
+            pixel_size: 1.1,
+        };
+        let options = RenderOptions {
+            blur_sigma: 0.6,
+            ..RenderOptions::new(512, 512)
+        };
+        let image = render(&layout, &truth, &options).unwrap_or_else(|e| panic!("{e}"));
+        let data = image
+            .pixels()
+            .iter()
+            .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+            .collect();
+        let frame = mono8(512, 512, data);
+        let megarena = |pose_3d: bool| {
+            params(&[
+                ("pattern_type", ParamValue::String("megarena".into())),
+                ("period", ParamValue::Double(10.0)),
+                ("code_depth", ParamValue::Integer(8)),
+                ("pose_3d", ParamValue::Boolean(pose_3d)),
+            ])
+        };
+        let mut flat = Processor::new(megarena(false), 0).unwrap_or_else(|e| panic!("{e}"));
+        let (out, _) = flat.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        let cov = out.markers.markers[0].covariance.0;
+        assert_eq!((cov[21], cov[28]), (1e6, 1e6), "roll and pitch unobserved");
+        let mut tilted = Processor::new(megarena(true), 0).unwrap_or_else(|e| panic!("{e}"));
+        let (out, _) = tilted.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        let m = &out.markers.markers[0];
+        let o = m.pose.orientation;
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            o.w, o.x, o.y, o.z,
+        ));
+        let (roll, pitch, _) = q.euler_angles();
+        // Orthographic render: either mirror solution (β, γ) or (−β, −γ).
+        assert!((pitch.abs() - 0.2).abs() < 1e-3, "pitch {pitch}");
+        assert!((roll.abs() - 0.1).abs() < 1e-3, "roll {roll}");
+        assert!(pitch * roll < 0.0, "signs of ({pitch}, {roll})");
+        let cov = m.covariance.0;
+        assert!(cov[21] > 0.0 && cov[21] < 1e-4, "roll variance {}", cov[21]);
+        assert!(
+            cov[28] > 0.0 && cov[28] < 1e-4,
+            "pitch variance {}",
+            cov[28]
+        );
+        assert_eq!(
+            out.detections.detections[0].results[0].pose.covariance.0,
+            cov
+        );
+    }
+
+    #[test]
     fn parameter_updates_apply_to_the_next_frame() {
         let p = params(&[("period", ParamValue::Double(8.0))]);
         let mut processor = Processor::new(p.clone(), 0).unwrap_or_else(|e| panic!("{e}"));
@@ -702,6 +763,7 @@ mod tests {
             phase_std: [1e-4, 1e-4],
             duplicate_id: false,
             decode_confidence: None,
+            pose_3d_cue_strength: None,
         };
         let a = vernier::Pose::planar(10.0, 20.0, 0.5, 1.0);
         let b = vernier::Pose::from_origin_in_image(
