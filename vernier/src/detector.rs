@@ -5,13 +5,13 @@
 
 use crate::error::{Error, Result};
 use crate::grey_image::GreyImage;
-use crate::hpcode::{HpCodeDetector, HpCodeParams};
-use crate::megarena::{MegarenaDetector, MegarenaParams};
+use crate::hpcode::{HpCodeDetector, HpCodeMarker, HpCodeParams};
+use crate::megarena::{MegarenaDetection, MegarenaDetector, MegarenaParams};
 use crate::megarena_sequence::LineSequence;
 use crate::pattern_file::Pattern;
-use crate::periodic::{PeriodicDetector, PeriodicParams};
+use crate::periodic::{PeriodicDetection, PeriodicDetector, PeriodicParams};
 use crate::pose::Pose;
-use crate::stamp::{StampDetector, StampParams};
+use crate::stamp::{StampDetection, StampDetector, StampParams};
 use nalgebra::Vector2;
 
 /// One detected marker, in the units of the pattern (µm by convention) and radians.
@@ -342,81 +342,89 @@ impl Detector {
     /// full-image types (periodic, Megarena). A `window_size` larger than the image is an
     /// [`Error::InvalidParameter`], never an empty list.
     pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<MarkerPose>> {
-        match &mut self.inner {
-            Inner::Periodic(d) => {
-                let found = d.detect(image)?;
-                Ok(vec![MarkerPose {
-                    id: 0,
-                    pose: found.pose,
-                    origin_px: found.origin_px,
-                    quality: found.analysis.quality,
-                    phase_std: found.analysis.phase_std,
-                    duplicate_id: false,
-                    decode_confidence: None,
-                    pose_3d_cue_strength: None,
-                }])
-            }
-            Inner::Megarena(d) => {
-                let found = d.detect(image)?;
-                // With pose_3d, the chosen orthographic 3-D solution replaces the planar pose
-                // (same x, y; alpha and pixel size of the 3-D decomposition).
-                let (pose, pose_3d_cue_strength) = match &found.out_of_plane {
-                    Some(o) => (o.pose(), Some(o.cue_strength)),
-                    None => (found.pose, None),
-                };
-                Ok(vec![MarkerPose {
-                    id: 0,
-                    pose,
-                    origin_px: found.origin_px,
-                    quality: found.analysis.quality,
-                    phase_std: found.analysis.phase_std,
-                    duplicate_id: false,
-                    decode_confidence: Some(found.decode_confidence),
-                    pose_3d_cue_strength,
-                }])
-            }
+        let mut markers: Vec<MarkerPose> = match &mut self.inner {
+            Inner::Periodic(d) => vec![MarkerPose::from(&d.detect(image)?)],
+            Inner::Megarena(d) => vec![MarkerPose::from(&d.detect(image)?)],
             Inner::Stamp(d) => {
                 if let Some(size) = d.params().window_size {
                     crate::limits::check_window_fits(size, image.width(), image.height())?;
                 }
-                let mut markers: Vec<MarkerPose> = d
-                    .detect(image)?
-                    .into_iter()
-                    .map(|found| MarkerPose {
-                        id: found.id as u64,
-                        pose: found.pose,
-                        origin_px: found.origin_px,
-                        quality: found.analysis.quality,
-                        phase_std: found.analysis.phase_std,
-                        duplicate_id: false,
-                        decode_confidence: Some(found.decode_confidence),
-                        pose_3d_cue_strength: None,
-                    })
-                    .collect();
-                flag_duplicate_ids(&mut markers);
-                Ok(markers)
+                d.detect(image)?.iter().map(MarkerPose::from).collect()
             }
             Inner::HpCode(d) => {
                 if let Some(size) = d.params().window_size {
                     crate::limits::check_window_fits(size, image.width(), image.height())?;
                 }
-                let mut markers: Vec<MarkerPose> = d
-                    .detect(image)?
-                    .into_iter()
-                    .map(|found| MarkerPose {
-                        id: found.id,
-                        pose: found.pose,
-                        origin_px: found.origin_px,
-                        quality: found.analysis.quality,
-                        phase_std: found.analysis.phase_std,
-                        duplicate_id: false,
-                        decode_confidence: Some(found.id_confidence),
-                        pose_3d_cue_strength: None,
-                    })
-                    .collect();
-                flag_duplicate_ids(&mut markers);
-                Ok(markers)
+                d.detect(image)?.iter().map(MarkerPose::from).collect()
             }
+        };
+        flag_duplicate_ids(&mut markers);
+        Ok(markers)
+    }
+}
+
+impl From<&PeriodicDetection> for MarkerPose {
+    fn from(found: &PeriodicDetection) -> Self {
+        MarkerPose {
+            id: 0,
+            pose: found.pose,
+            origin_px: found.origin_px,
+            quality: found.analysis.quality,
+            phase_std: found.analysis.phase_std,
+            duplicate_id: false,
+            decode_confidence: None,
+            pose_3d_cue_strength: None,
+        }
+    }
+}
+
+impl From<&MegarenaDetection> for MarkerPose {
+    fn from(found: &MegarenaDetection) -> Self {
+        // With pose_3d, the chosen orthographic 3-D solution replaces the planar pose (same
+        // x, y; alpha and pixel size of the 3-D decomposition).
+        let (pose, pose_3d_cue_strength) = match &found.out_of_plane {
+            Some(o) => (o.pose(), Some(o.cue_strength)),
+            None => (found.pose, None),
+        };
+        MarkerPose {
+            id: 0,
+            pose,
+            origin_px: found.origin_px,
+            quality: found.analysis.quality,
+            phase_std: found.analysis.phase_std,
+            duplicate_id: false,
+            decode_confidence: Some(found.decode_confidence),
+            pose_3d_cue_strength,
+        }
+    }
+}
+
+impl From<&StampDetection> for MarkerPose {
+    fn from(found: &StampDetection) -> Self {
+        MarkerPose {
+            id: found.id as u64,
+            pose: found.pose,
+            origin_px: found.origin_px,
+            quality: found.analysis.quality,
+            phase_std: found.analysis.phase_std,
+            duplicate_id: false,
+            decode_confidence: Some(found.decode_confidence),
+            pose_3d_cue_strength: None,
+        }
+    }
+}
+
+impl From<&HpCodeMarker> for MarkerPose {
+    fn from(found: &HpCodeMarker) -> Self {
+        MarkerPose {
+            id: found.id,
+            pose: found.pose,
+            origin_px: found.origin_px,
+            quality: found.analysis.quality,
+            phase_std: found.analysis.phase_std,
+            duplicate_id: false,
+            decode_confidence: Some(found.id_confidence),
+            pose_3d_cue_strength: None,
         }
     }
 }

@@ -293,6 +293,28 @@ impl GreyImage {
     pub fn pixels(&self) -> &[f32] {
         &self.pixels
     }
+
+    /// Bilinear interpolation at `(col, row)`, pixels; `None` outside
+    /// `[0, width−1] × [0, height−1]` (and for NaN). The one sampler of the coarse steps
+    /// (HP code ID dots, stamp and Megarena thumbnails, stamp edge profiles).
+    #[inline]
+    pub fn bilinear(&self, col: f64, row: f64) -> Option<f32> {
+        let (w, h) = (self.width, self.height);
+        if !(col >= 0.0 && row >= 0.0 && col <= (w - 1) as f64 && row <= (h - 1) as f64) {
+            return None;
+        }
+        // In range, so the truncations are floors inside the image; the right/bottom
+        // neighbour is clamped for samples on the last column/row.
+        let (c0, r0) = (col as usize, row as usize);
+        let (fc, fr) = ((col - c0 as f64) as f32, (row - r0 as f64) as f32);
+        let (c1, r1) = ((c0 + 1).min(w - 1), (r0 + 1).min(h - 1));
+        let px = self.pixels();
+        let (top, bottom) = (px.get(r0 * w..)?, px.get(r1 * w..)?);
+        let (t0, t1, b0, b1) = (top.get(c0)?, top.get(c1)?, bottom.get(c0)?, bottom.get(c1)?);
+        let upper = t0 + (t1 - t0) * fc;
+        let lower = b0 + (b1 - b0) * fc;
+        Some(upper + (lower - upper) * fr)
+    }
     /// Mutable row-major pixel values.
     pub fn pixels_mut(&mut self) -> &mut [f32] {
         &mut self.pixels
@@ -719,6 +741,16 @@ pub(crate) fn bin_2x2(pixels: &[f32], cols: usize, rb: usize, cb: usize, out: &m
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn bilinear_interpolates_and_rejects_outside() {
+        let img = GreyImage::new(2, 2, vec![0.0, 1.0, 0.5, 0.5]).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(img.bilinear(0.5, 0.0), Some(0.5));
+        assert_eq!(img.bilinear(1.0, 1.0), Some(0.5));
+        assert!((img.bilinear(0.5, 0.5).unwrap_or(0.0) - 0.5).abs() < 1e-6);
+        assert_eq!(img.bilinear(-0.1, 0.0), None);
+        assert_eq!(img.bilinear(0.0, f64::NAN), None);
+    }
 
     #[test]
     fn raw_formats_and_errors() {

@@ -2,10 +2,10 @@
 //! absolute pose.
 //!
 //! Pipeline, one module per step:
-//! 1. [`finders`]: finder squares as nested regions (centre in gap in ring) of the scale-free
+//! 1. `finders`: finder squares as nested regions (centre in gap in ring) of the scale-free
 //!    local binarisation ([`crate::binarize`]) at three threshold levels, each with its own
 //!    polarity, coarse to fine on a pyramid of 2×2-binned copies;
-//! 2. [`grouping`]: triples of finders that fit the marker geometry (right angle, equal legs
+//! 2. `grouping`: triples of finders that fit the marker geometry (right angle, equal legs
 //!    `W − 7` modules long); leftovers are ignored;
 //! 3. a window holding only the marker's dot grid (inside the marker, clear of the finders)
 //!    around the coarse centre, [`PhaseEngine::analyze`] (refined planes); a radial Hann
@@ -21,9 +21,9 @@
 //! pattern units. A mirrored marker is reported with `gamma = −π` (rotation by π about the
 //! pattern x axis: the marker seen from behind), which keeps `cTp` a proper rigid transform.
 
-pub mod finders;
+mod finders;
 pub(crate) mod fine;
-pub mod grouping;
+mod grouping;
 pub(crate) mod marker_id;
 
 pub use finders::Finder;
@@ -417,7 +417,8 @@ impl HpCodeDetector {
             // Too few periods inside the marker's dot field (small markers, dust over it):
             // the whole marker, apodised, has about twice as many.
             let width = auto_window_width(triple);
-            let wide = 2 * fast_size_at_most((width / 2.0).ceil() as usize).max(MIN_WINDOW / 2);
+            let wide = 2 * crate::phase::fft_size::at_most((width / 2.0).ceil() as usize)
+                .max(MIN_WINDOW / 2);
             let hann = self.params.apodize.unwrap_or(true);
             first = self.analyze_window(image, triple, coarse, wide, hann)?;
         }
@@ -624,20 +625,7 @@ fn auto_window_size(width: f64, module: f64, angle: f64) -> usize {
     let clear_of_finders = (width / 2.0 - (7.0 + WINDOW_CLEARANCE) * module) * spread;
     let inside = (width / 2.0 - WINDOW_CLEARANCE * module) / spread;
     let half = clear_of_finders.min(inside).floor().max(0.0) as usize;
-    (2 * fast_size_at_most(half)).max(MIN_WINDOW)
-}
-
-/// Largest `2^a·3^b·5^c` ≤ `n` (1 when `n` is 0): sizes the FFT handles fast.
-fn fast_size_at_most(n: usize) -> usize {
-    let smooth = |mut v: usize| {
-        for p in [2, 3, 5] {
-            while v % p == 0 {
-                v /= p;
-            }
-        }
-        v == 1
-    };
-    (1..=n).rev().find(|&v| smooth(v)).unwrap_or(1)
+    (2 * crate::phase::fft_size::at_most(half)).max(MIN_WINDOW)
 }
 
 /// Radial Hann window of a `size × size` image: `(1 + cos(π·d/ρ))/2` for `d < ρ = size/2`,

@@ -55,9 +55,9 @@
 //! | HP code (QR-like finders, ID in missing dots) | [`hpcode::HpCodeDetector`] | every marker with its ID, ID confidence and full-turn pose |
 //! | stamp / bitmap | [`stamp::StampDetector`] | every stamp with its bitmap index and pose |
 //!
-//! All of them run the [`PhaseEngine`] (also with an example): spectrum ([`phase::spectrum`]),
-//! lobe search ([`phase::lobes`]), band-pass planes ([`phase::bandpass`]) and the windowed
-//! refinement on the pixels ([`phase::refine`]).
+//! All of them run the [`PhaseEngine`] (also with an example): spectrum (`phase/spectrum.rs`),
+//! lobe search (`phase/lobes.rs`), band-pass planes (`phase/bandpass.rs`) and the windowed
+//! refinement on the pixels (`phase/refine.rs`).
 //!
 //! ## Frames and units
 //!
@@ -91,6 +91,7 @@ pub mod limits;
 pub use error::{Error, Result};
 pub mod grey_image;
 pub mod megarena_sequence;
+mod order_stats;
 pub mod output;
 pub mod pattern_file;
 pub mod phase;
@@ -102,9 +103,13 @@ pub use pose::Pose;
 pub mod periodic;
 pub use periodic::{PeriodicDetector, PeriodicParams};
 pub mod detector;
-pub use detector::{Detector, DetectorConfig, MarkerPose};
+pub use detector::{Detector, DetectorConfig, DetectorSettings, MarkerKind, MarkerPose};
 pub mod export;
 pub mod hpcode;
 pub mod megarena;
 pub mod snapshot;
 pub mod stamp;
+pub use hpcode::{HpCodeDetector, HpCodeMarker, HpCodeParams};
+pub use megarena::{MegarenaDetection, MegarenaDetector, MegarenaParams};
+pub use periodic::PeriodicDetection;
+pub use stamp::{StampDetection, StampDetector, StampParams};

@@ -154,7 +154,8 @@ fn read_edge(
         background.push(sample(point(0.5, c - 0.5))?);
         background.push(sample(point(0.5, c + 0.5))?);
     }
-    let global_half = 0.5 * (median(&mut present.clone()) - median(&mut background.clone()));
+    let global_half =
+        0.5 * (median_or_nan(&mut present.clone()) - median_or_nan(&mut background.clone()));
     if global_half.is_nan() || global_half <= 0.0 {
         return None;
     }
@@ -164,8 +165,8 @@ fn read_edge(
     let signed: Vec<f64> = (0..levels.len())
         .map(|i| {
             let near = i.saturating_sub(1)..(i + 2).min(levels.len());
-            let hi = median(&mut present[near.clone()].to_vec());
-            let lo = median(&mut background[2 * near.start..2 * near.end].to_vec());
+            let hi = median_or_nan(&mut present[near.clone()].to_vec());
+            let lo = median_or_nan(&mut background[2 * near.start..2 * near.end].to_vec());
             let half = (0.5 * (hi - lo)).max(0.5 * global_half);
             (levels[i] - 0.5 * (hi + lo)) / half
         })
@@ -224,7 +225,10 @@ pub(crate) fn grid_support(image: &GreyImage, polarity: Polarity, grid: &DotGrid
             }
         }
     }
-    let (hi, lo) = (median(&mut dots.clone()), median(&mut gaps.clone()));
+    let (hi, lo) = (
+        median_or_nan(&mut dots.clone()),
+        median_or_nan(&mut gaps.clone()),
+    );
     if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
         return 0.0;
     }
@@ -363,7 +367,7 @@ fn bridge_threshold(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> Op
             bridges.push(dot_level(image, polarity, grid.at(r + 0.5, c), grid)?);
         }
     }
-    let (hi, lo) = (median(&mut dots), median(&mut bridges));
+    let (hi, lo) = (median_or_nan(&mut dots), median_or_nan(&mut bridges));
     (hi > lo).then_some(0.5 * (hi + lo))
 }
 
@@ -387,7 +391,7 @@ fn dot_level(
     let mut samples = [0.0f64; 9];
     for (k, s) in samples.iter_mut().enumerate() {
         let q = p + dx * (k % 3) as f64 - dx + dy * (k / 3) as f64 - dy;
-        let v = bilinear(image, q.x, q.y)?;
+        let v = f64::from(image.bilinear(q.x, q.y)?);
         *s = match polarity {
             Polarity::BrightDots => v,
             Polarity::DarkDots => 1.0 - v,
@@ -397,34 +401,9 @@ fn dot_level(
     Some(samples[OCCLUSION_RANK])
 }
 
-/// Bilinear interpolation at `(x, y)` = `(col, row)`; `None` outside the image.
-fn bilinear(image: &GreyImage, x: f64, y: f64) -> Option<f64> {
-    let (w, h) = (image.width(), image.height());
-    if !(x >= 0.0 && y >= 0.0 && x <= (w - 1) as f64 && y <= (h - 1) as f64) {
-        return None;
-    }
-    let (c0, r0) = (x.floor() as usize, y.floor() as usize);
-    let (c1, r1) = ((c0 + 1).min(w - 1), (r0 + 1).min(h - 1));
-    let (fx, fy) = (x - c0 as f64, y - r0 as f64);
-    let px = image.pixels();
-    let v = |c: usize, r: usize| px[r * w + c] as f64;
-    Some(
-        (1.0 - fy) * ((1.0 - fx) * v(c0, r0) + fx * v(c1, r0))
-            + fy * ((1.0 - fx) * v(c0, r1) + fx * v(c1, r1)),
-    )
-}
-
-fn median(values: &mut [f64]) -> f64 {
-    let n = values.len();
-    if n == 0 {
-        return f64::NAN;
-    }
-    values.sort_by(f64::total_cmp);
-    if n % 2 == 1 {
-        values[n / 2]
-    } else {
-        0.5 * (values[n / 2 - 1] + values[n / 2])
-    }
+/// The median, NaN for no values (then every comparison with it fails).
+fn median_or_nan(values: &mut [f64]) -> f64 {
+    crate::order_stats::median(values).unwrap_or(f64::NAN)
 }
 
 #[cfg(test)]

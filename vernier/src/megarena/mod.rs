@@ -4,21 +4,21 @@
 //!
 //! Pipeline (one way, image → planes → lattice → code → pose):
 //! 1. the phase engine measures the two phase planes (sub-pixel lattice, modulo one period);
-//! 2. [`thumbnail`]: the dot contrast is sampled at every lattice node the planes predict;
-//! 3. [`orientation`]: the 3×3 missing-dot rule gives, per lattice axis, the coding residue and
+//! 2. `thumbnail`: the dot contrast is sampled at every lattice node the planes predict;
+//! 3. `orientation`: the 3×3 missing-dot rule gives, per lattice axis, the coding residue and
 //!    the direction of the layout index;
 //! 4. `refine`: the planes are corrected dot by dot (the grid's holes bias the engine's
 //!    whole-image fit by a few 1e-3 px);
-//! 5. [`decoding`]: every visible coding line gives one soft bit; the bits are located in the
+//! 5. `decoding`: every visible coding line gives one soft bit; the bits are located in the
 //!    sequence with an O(1) window table, tolerating a few wrong bits;
 //! 6. the planes, re-expressed as absolute pattern phases `2π·(pattern coordinate)/P`, give the
 //!    pose (and, on request, the out-of-plane angles, [`pose3d`]).
 
-pub mod decoding;
-pub mod orientation;
+mod decoding;
+mod orientation;
 pub mod pose3d;
 mod refine;
-pub mod thumbnail;
+mod thumbnail;
 
 pub use decoding::{Located, WindowIndex};
 pub use orientation::Orientation;

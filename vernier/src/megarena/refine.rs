@@ -53,7 +53,7 @@ struct DotPhase {
 
 /// Corrected planes and fit statistics.
 #[derive(Clone, Copy, Debug)]
-pub(super) struct Refinement {
+pub(super) struct DotwiseFit {
     pub planes: [PhasePlane; 2],
     /// Number of dots used.
     pub dots: usize,
@@ -67,7 +67,7 @@ pub(super) fn refine_on_dots(
     planes: &[PhasePlane; 2],
     thumb: &Thumbnail,
     white: f64,
-) -> Option<Refinement> {
+) -> Option<DotwiseFit> {
     let lattice = Lattice::new(image, planes).ok()?;
     let (w, h) = (image.width(), image.height());
     let (cx, cy) = image.center();
@@ -224,7 +224,7 @@ pub(super) fn refine_on_dots(
             c: planes[l].c + delta.c,
         };
     }
-    Some(Refinement { planes: out, dots })
+    Some(DotwiseFit { planes: out, dots })
 }
 
 /// Column sums `V_q(c) = Σ_r Y_q(r)·g(r0 + r, c0 + c)` of the `n × n` window at `(c0, r0)`

@@ -21,6 +21,7 @@
 use super::orientation::Orientation;
 use crate::error::{Error, Result};
 use crate::grey_image::GreyImage;
+use crate::order_stats::median;
 use crate::phase::PhasePlane;
 use std::f64::consts::TAU;
 
@@ -110,7 +111,7 @@ impl Thumbnail {
             let (mut c, mut r) = lattice.position((first[0] + i as i64) as f64, first[1] as f64);
             let (dc, dr) = lattice.step[1];
             for v in row.iter_mut() {
-                if let Some(level) = bilinear(image, c, r) {
+                if let Some(level) = image.bilinear(c, r) {
                     *v = level;
                 }
                 c += dc;
@@ -185,25 +186,6 @@ impl Thumbnail {
     }
 }
 
-/// Median of at most four values (mean of the two middle ones for an even count); `None` if
-/// empty.
-fn median(values: &mut [f32]) -> Option<f32> {
-    let (min, max, sum) = values.iter().fold(
-        (f32::INFINITY, f32::NEG_INFINITY, 0.0f32),
-        |(lo, hi, s), &v| (lo.min(v), hi.max(v), s + v),
-    );
-    match values.len() {
-        0 => None,
-        1 | 2 => Some(sum / values.len() as f32),
-        3 => Some(sum - min - max),
-        4 => Some((sum - min - max) / 2.0),
-        _ => {
-            values.sort_by(f32::total_cmp);
-            values.get(values.len() / 2).copied()
-        }
-    }
-}
-
 /// Pixel positions of lattice points: `(col, row) = centre + J⁻¹·(2π·n − c)`.
 pub(super) struct Lattice {
     planes: [PhasePlane; 2],
@@ -250,48 +232,5 @@ impl Lattice {
             self.origin.0 + n1 * self.step[0].0 + n2 * self.step[1].0,
             self.origin.1 + n1 * self.step[0].1 + n2 * self.step[1].1,
         )
-    }
-}
-
-/// Bilinear interpolation at `(col, row)`; `None` outside `[0, C−1] × [0, R−1]`.
-#[inline]
-fn bilinear(image: &GreyImage, col: f64, row: f64) -> Option<f32> {
-    let (w, h) = (image.width(), image.height());
-    if !(col >= 0.0 && row >= 0.0 && col <= (w - 1) as f64 && row <= (h - 1) as f64) {
-        return None;
-    }
-    // In range, so the truncations are floors inside the image; the right/bottom neighbour is
-    // clamped for samples on the last column/row.
-    let (c0, r0) = (col as usize, row as usize);
-    let (fc, fr) = ((col - c0 as f64) as f32, (row - r0 as f64) as f32);
-    let (c1, r1) = ((c0 + 1).min(w - 1), (r0 + 1).min(h - 1));
-    let px = image.pixels();
-    let (top, bottom) = (px.get(r0 * w..)?, px.get(r1 * w..)?);
-    let (t0, t1, b0, b1) = (top.get(c0)?, top.get(c1)?, bottom.get(c0)?, bottom.get(c1)?);
-    let upper = t0 + (t1 - t0) * fc;
-    let lower = b0 + (b1 - b0) * fc;
-    Some(upper + (lower - upper) * fr)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn bilinear_interpolates_and_rejects_outside() {
-        let img = GreyImage::new(2, 2, vec![0.0, 1.0, 0.5, 0.5]).unwrap();
-        assert_eq!(bilinear(&img, 0.5, 0.0), Some(0.5));
-        assert_eq!(bilinear(&img, 1.0, 1.0), Some(0.5));
-        assert!((bilinear(&img, 0.5, 0.5).unwrap() - 0.5).abs() < 1e-6);
-        assert_eq!(bilinear(&img, -0.1, 0.0), None);
-        assert_eq!(bilinear(&img, 0.0, f64::NAN), None);
-    }
-
-    #[test]
-    fn median_of_few_values() {
-        assert_eq!(median(&mut []), None);
-        assert_eq!(median(&mut [3.0]), Some(3.0));
-        assert_eq!(median(&mut [4.0, 1.0, 9.0]), Some(4.0));
-        assert_eq!(median(&mut [4.0, 1.0, 9.0, 2.0]), Some(3.0));
     }
 }

@@ -28,8 +28,7 @@ pub(crate) struct BandpassPlan {
 }
 
 impl BandpassPlan {
-    pub(crate) fn new(mr: usize, mc: usize) -> Self {
-        let mut planner = FftPlanner::<f32>::new();
+    pub(crate) fn new(mr: usize, mc: usize, planner: &mut FftPlanner<f32>) -> Self {
         let row_ifft = planner.plan_fft_inverse(mc);
         let col_ifft = planner.plan_fft_inverse(mr);
         let scratch_len = row_ifft
@@ -45,21 +44,6 @@ impl BandpassPlan {
             scratch: vec![C32::default(); scratch_len],
         }
     }
-}
-
-/// Smallest `2^a·3^b` ≥ `n` (fast FFT sizes).
-pub(crate) fn fast_size(n: usize) -> usize {
-    let mut best = usize::MAX;
-    let mut p2 = 1usize;
-    while p2 < 2 * n.max(1) {
-        let mut v = p2;
-        while v < n {
-            v *= 3;
-        }
-        best = best.min(v);
-        p2 *= 2;
-    }
-    best
 }
 
 /// Decimated unwrapped phase of one lobe: samples at pixel positions
@@ -209,17 +193,4 @@ pub(crate) fn lobe_phase(
         amplitude: plan.grid.iter().map(|z| z.norm()).collect(),
     });
     Some((plane, map))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn fast_sizes() {
-        assert_eq!(fast_size(36), 36);
-        assert_eq!(fast_size(37), 48);
-        assert_eq!(fast_size(1), 1);
-        assert_eq!(fast_size(100), 108);
-    }
 }

@@ -76,8 +76,8 @@ impl PhaseEngine {
             ));
         }
 
-        let cache = self.cache_for(rows, cols, full.sigma, true);
-        let spectrum = cache.spectrum().forward(image.pixels());
+        let (cache, planners) = self.cache_for(rows, cols, full.sigma, true);
+        let spectrum = cache.spectrum(planners).forward(image.pixels());
         let (half_rows, half_cols) = ((rows / 2) as i64, (cols / 2) as i64);
         let mut log_magnitude = Vec::with_capacity(rows * cols);
         for row in 0..rows as i64 {

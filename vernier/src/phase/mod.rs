@@ -2,23 +2,24 @@
 //! planes.
 //!
 //! Steps, each in its own module:
-//! 1. [`spectrum`]: real-to-complex 2-D FFT (plans and buffers cached per image size);
-//! 2. [`lobes`]: the two strongest lobes in a ring of the half spectrum, ~90° apart;
-//! 3. [`bandpass`]: Gaussian band-pass around each lobe on a demodulated, decimated grid,
+//! 1. `spectrum`: real-to-complex 2-D FFT (plans and buffers cached per image size);
+//! 2. `lobes`: the two strongest lobes in a ring of the half spectrum, ~90° apart;
+//! 3. `bandpass`: Gaussian band-pass around each lobe on a demodulated, decimated grid,
 //!    unwrapped phase, least-squares plane on the central crop (the original's estimate);
-//! 4. [`refine`]: windowed Gauss–Newton refinement of both planes on the full image, which
+//! 4. `refine`: windowed Gauss–Newton refinement of both planes on the full image, which
 //!    removes the harmonic leakage of step 3 (default on).
 //!
 //! [`inspect`] adds display products (spectrum, wrapped phase) for viewers.
 //!
 //! Image frame of all results: `x = col − C div 2`, `y = row − R div 2`, pixels, y down.
 
-pub mod bandpass;
+mod bandpass;
+pub(crate) mod fft_size;
 pub mod inspect;
-pub mod lobes;
+mod lobes;
 pub mod plane;
-pub mod refine;
-pub mod spectrum;
+mod refine;
+mod spectrum;
 
 pub use bandpass::PhaseMap;
 pub use inspect::{PhaseInspection, SpectrumView};
@@ -27,7 +28,7 @@ pub use plane::{fit_plane, wrap_angle, wrap_to_pi, PhasePlane};
 
 use crate::error::{Error, Result};
 use crate::grey_image::GreyImage;
-use bandpass::{fast_size, BandpassPlan};
+use bandpass::BandpassPlan;
 use refine::RefinePlan;
 use spectrum::SpectrumPlan;
 
@@ -238,24 +239,41 @@ struct SizeCache {
     binned: Vec<f32>,
 }
 
-impl SizeCache {
-    fn spectrum(&mut self) -> &mut SpectrumPlan {
-        let (rows, cols) = (self.rows, self.cols);
-        self.spectrum
-            .get_or_insert_with(|| SpectrumPlan::new(rows, cols))
+/// The FFT planners of one engine: one per engine, as rustfft advises, so that plans of all
+/// sizes share the planner's caches of butterflies and twiddle factors.
+pub(crate) struct Planners {
+    complex: rustfft::FftPlanner<f32>,
+    real: realfft::RealFftPlanner<f32>,
+}
+
+impl Default for Planners {
+    fn default() -> Self {
+        Planners {
+            complex: rustfft::FftPlanner::new(),
+            real: realfft::RealFftPlanner::new(),
+        }
     }
-    fn bandpass(&mut self) -> &mut BandpassPlan {
+}
+
+impl SizeCache {
+    fn spectrum(&mut self, planners: &mut Planners) -> &mut SpectrumPlan {
+        let (rows, cols) = (self.rows, self.cols);
+        self.spectrum.get_or_insert_with(|| {
+            SpectrumPlan::new(rows, cols, &mut planners.real, &mut planners.complex)
+        })
+    }
+    fn bandpass(&mut self, planners: &mut Planners) -> &mut BandpassPlan {
         let (rows, cols) = (self.rows, self.cols);
         let (sigma, full) = (self.sigma, self.full_resolution);
         self.bandpass.get_or_insert_with(|| {
             // Decimated band-pass grid: ±6σ bins around the lobe (Gaussian weight < 2e-8 beyond).
-            let needed = fast_size((12.0 * sigma).ceil() as usize);
+            let needed = fft_size::at_least((12.0 * sigma).ceil() as usize);
             let (mr, mc) = if full {
                 (rows, cols)
             } else {
                 (needed.min(rows), needed.min(cols))
             };
-            BandpassPlan::new(mr, mc)
+            BandpassPlan::new(mr, mc, &mut planners.complex)
         })
     }
     fn refine(&mut self) -> &mut RefinePlan {
@@ -265,8 +283,11 @@ impl SizeCache {
     }
 }
 
-/// The phase engine. Keeps FFT plans and work buffers for the last few image sizes, so calling
-/// it on a stream of same-size frames allocates nothing after the first frame.
+/// The phase engine. One FFT planner, and FFT plans and the image-sized work buffers (spectrum,
+/// band-pass grid, refinement kernels, binned copy) for the last few image sizes: on a stream
+/// of same-size frames those are built once. What is still allocated per call is small and
+/// proportional to a side or to the band-pass grid (coordinate and weight rows in the
+/// refinement, the decimated phase maps), not to the image.
 ///
 /// # Example
 ///
@@ -298,6 +319,7 @@ impl SizeCache {
 #[derive(Default)]
 pub struct PhaseEngine {
     caches: Vec<SizeCache>,
+    planners: Planners,
 }
 
 /// How many image sizes keep their plans (HP/Stamp detectors alternate full frames and
@@ -330,7 +352,7 @@ impl PhaseEngine {
         cols: usize,
         sigma: f64,
         full_resolution: bool,
-    ) -> &mut SizeCache {
+    ) -> (&mut SizeCache, &mut Planners) {
         let matches = |c: &SizeCache| {
             c.rows == rows
                 && c.cols == cols
@@ -357,7 +379,7 @@ impl PhaseEngine {
             });
         }
         let last = self.caches.len() - 1;
-        &mut self.caches[last]
+        (&mut self.caches[last], &mut self.planners)
     }
 
     /// Measures the two phase planes of `image` (bright dots; invert dark-dot images first, see
@@ -400,12 +422,12 @@ impl PhaseEngine {
         let coarse = match coarse {
             Some(c) => c,
             None => {
-                let cache = self.cache_for(rows, cols, params.sigma, full_resolution);
-                spectral_estimate(image.pixels(), cache, params, prior, 1.0)?
+                let (cache, planners) = self.cache_for(rows, cols, params.sigma, full_resolution);
+                spectral_estimate(image.pixels(), cache, planners, params, prior, 1.0)?
             }
         };
         let refined = if refining {
-            let cache = self.cache_for(rows, cols, params.sigma, full_resolution);
+            let (cache, _) = self.cache_for(rows, cols, params.sigma, full_resolution);
             let r = refine::refine(
                 image.pixels(),
                 coarse.planes,
@@ -470,7 +492,7 @@ impl PhaseEngine {
                 "{cols}x{rows} pixels is too small for the phase engine"
             )));
         }
-        let cache = self.cache_for(rows, cols, PhaseParams::default().sigma, false);
+        let (cache, _) = self.cache_for(rows, cols, PhaseParams::default().sigma, false);
         let r = refine::refine_weighted(
             image.pixels(),
             weights,
@@ -496,10 +518,10 @@ impl PhaseEngine {
     ) -> Result<Option<SpectralEstimate>> {
         let (rows, cols) = (image.height(), image.width());
         let (rb, cb) = (rows / 2, cols / 2);
-        let cache = self.cache_for(rb, cb, params.sigma, false);
+        let (cache, planners) = self.cache_for(rb, cb, params.sigma, false);
         let mut binned = std::mem::take(&mut cache.binned);
         crate::grey_image::bin_2x2(image.pixels(), cols, rb, cb, &mut binned);
-        let estimate = spectral_estimate(&binned, cache, params, prior, 2.0);
+        let estimate = spectral_estimate(&binned, cache, planners, params, prior, 2.0);
         let result = match estimate {
             Ok(mut e)
                 if e.planes
@@ -546,6 +568,7 @@ impl PhaseEngine {
 fn spectral_estimate(
     pixels: &[f32],
     cache: &mut SizeCache,
+    planners: &mut Planners,
     params: &PhaseParams,
     prior: Option<&LobePrior>,
     binning: f64,
@@ -558,9 +581,9 @@ fn spectral_estimate(
         min_peak_prominence: params.min_peak_prominence,
     };
     // Borrow the two plans separately (the spectrum view borrows the spectrum plan).
-    cache.bandpass();
+    cache.bandpass(planners);
     let (Some(spectrum_plan), Some(bandpass_plan)) = ({
-        cache.spectrum();
+        cache.spectrum(planners);
         (cache.spectrum.as_mut(), cache.bandpass.as_mut())
     }) else {
         return Err(Error::PatternNotFound("internal: plans missing".into()));

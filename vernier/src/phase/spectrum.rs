@@ -32,11 +32,14 @@ pub struct SpectrumPlan {
 }
 
 impl SpectrumPlan {
-    /// Plans the transforms of a `rows × cols` image (both ≥ 1).
-    pub fn new(rows: usize, cols: usize) -> Self {
-        let mut real_planner = RealFftPlanner::<f32>::new();
+    /// Plans the transforms of a `rows × cols` image (both ≥ 1) with the engine's planners.
+    pub fn new(
+        rows: usize,
+        cols: usize,
+        real_planner: &mut RealFftPlanner<f32>,
+        planner: &mut FftPlanner<f32>,
+    ) -> Self {
         let row_fft = real_planner.plan_fft_forward(cols);
-        let mut planner = FftPlanner::<f32>::new();
         let col_fft = planner.plan_fft_forward(rows);
         let half = cols / 2 + 1;
         SpectrumPlan {
@@ -51,11 +54,6 @@ impl SpectrumPlan {
             col_fft,
             bins: vec![C32::default(); rows * half],
         }
-    }
-
-    /// Image size this plan serves, `(rows, cols)`.
-    pub fn size(&self) -> (usize, usize) {
-        (self.rows, self.cols)
     }
 
     /// Computes the half spectrum of `pixels` (row-major, `rows × cols`).
@@ -158,7 +156,12 @@ mod tests {
             let pixels: Vec<f32> = (0..rows * cols)
                 .map(|i| ((i * 7919) % 101) as f32 / 101.0)
                 .collect();
-            let mut plan = SpectrumPlan::new(rows, cols);
+            let mut plan = SpectrumPlan::new(
+                rows,
+                cols,
+                &mut RealFftPlanner::new(),
+                &mut FftPlanner::new(),
+            );
             let spectrum = plan.forward(&pixels);
             for ky in -(rows as i64) / 2..=(rows as i64 - 1) / 2 {
                 for kx in -(cols as i64) / 2..=(cols as i64 - 1) / 2 {

@@ -3,7 +3,7 @@
 //!
 //! Two ways to find them, chosen from the bitmaps ([`StampSearch::Auto`]):
 //! * **framed** (stamps: bitmaps with a solid border ring): every quadrilateral outline of a region
-//!   brighter or darker than its surroundings is a candidate ([`quads`]), in the polarity of that
+//!   brighter or darker than its surroundings is a candidate (`quads`), in the polarity of that
 //!   region; around its centre a square window, its weighted mean removed (the window's own
 //!   spectrum would otherwise swamp a faint grid) and apodised by the flat-top radial window
 //!   (docs/design.md#stamp-window), goes through the phase engine; the frame's size must agree with
@@ -36,7 +36,7 @@
 //! a reading that is a near tie or a pose that disagrees with the frame is dropped, never reported.
 
 mod matching;
-pub mod quads;
+mod quads;
 mod thumbnail;
 
 pub use quads::{Quad, QuadParams};
@@ -522,7 +522,7 @@ impl StampDetector {
                     .iter()
                     .map(|s| s.1)
                     .fold(f64::INFINITY, f64::min);
-                fast_size_at_most((side * fraction).floor() as usize)
+                crate::phase::fft_size::at_most((side * fraction).floor() as usize)
             }
         };
         if size < MIN_IMAGE_SIDE {
@@ -833,7 +833,7 @@ impl StampDetector {
         let window = self
             .params
             .window_size
-            .unwrap_or(fast_size_at_most(side as usize));
+            .unwrap_or(crate::phase::fft_size::at_most(side as usize));
         if window < 32 {
             return Ok(coarse);
         }
@@ -1062,34 +1062,10 @@ pub fn frame_thickness(bitmap: &BitmapLayout) -> usize {
     t
 }
 
-/// Largest `2^a·3^b ≤ n` (fast FFT sizes); 0 for `n = 0`.
-fn fast_size_at_most(n: usize) -> usize {
-    let mut best = 0;
-    let mut p3 = 1usize;
-    while p3 <= n {
-        let mut v = p3;
-        while v * 2 <= n {
-            v *= 2;
-        }
-        best = best.max(v);
-        p3 *= 3;
-    }
-    best
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::snapshot::Snapshot;
-
-    #[test]
-    fn fast_sizes_at_most() {
-        assert_eq!(fast_size_at_most(0), 0);
-        assert_eq!(fast_size_at_most(1), 1);
-        assert_eq!(fast_size_at_most(473), 432);
-        assert_eq!(fast_size_at_most(500), 486);
-        assert_eq!(fast_size_at_most(512), 512);
-    }
 
     #[test]
     fn cached_window_equals_snapshot_apodization() {

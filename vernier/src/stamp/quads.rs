@@ -29,8 +29,8 @@
 //! orientation, and which candidate is a stamp is decided afterwards by the grid period and
 //! the bitmap match, not by contour nesting alone.
 
-use super::thumbnail::bilinear;
 use crate::grey_image::{GreyImage, Polarity};
+use crate::order_stats::median;
 use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
 
 /// Settings of the frame (quadrilateral) search.
@@ -271,7 +271,8 @@ fn refine_side(
         let base = a + (b - a) * t;
         values.clear();
         for m in -half..=half {
-            match bilinear(image, base + n * (m as f64 * step_px)) {
+            let at = base + n * (m as f64 * step_px);
+            match image.bilinear(at.x, at.y) {
                 Some(v) => values.push(sign * v),
                 None => break,
             }
@@ -313,7 +314,7 @@ fn robust_line(points: &[(f64, f64)], expected: usize) -> Option<(f64, f64)> {
         return None;
     }
     let mut offsets: Vec<f64> = points.iter().map(|p| p.1).collect();
-    let (mut offset, mut slope) = (median(&mut offsets), 0.0);
+    let (mut offset, mut slope) = (median(&mut offsets).unwrap_or(0.0), 0.0);
     let mut residuals = Vec::with_capacity(points.len());
     let mut scale = 0.0;
     for _ in 0..5 {
@@ -321,7 +322,7 @@ fn robust_line(points: &[(f64, f64)], expected: usize) -> Option<(f64, f64)> {
         residuals.extend(points.iter().map(|&(s, e)| (e - offset - slope * s).abs()));
         let mut r = residuals.clone();
         // Robust spread, floored at a quarter pixel (sharp synthetic edges give ~0).
-        scale = (1.4826 * median(&mut r)).max(0.25);
+        scale = (1.4826 * median(&mut r).unwrap_or(0.0)).max(0.25);
         let c = 4.685 * scale;
         let (mut sw, mut ss, mut se, mut sss, mut sse) = (0.0, 0.0, 0.0, 0.0, 0.0);
         for (&(s, e), &res) in points.iter().zip(&residuals) {
@@ -348,16 +349,6 @@ fn robust_line(points: &[(f64, f64)], expected: usize) -> Option<(f64, f64)> {
         .filter(|&&(s, e)| (e - offset - slope * s).abs() <= 3.0 * scale)
         .count();
     (2 * inliers >= expected && slope.is_finite() && offset.is_finite()).then_some((offset, slope))
-}
-
-/// Median of `values` (reordered); 0 for none.
-fn median(values: &mut [f64]) -> f64 {
-    if values.is_empty() {
-        return 0.0;
-    }
-    let k = values.len() / 2;
-    let (_, m, _) = values.select_nth_unstable_by(k, f64::total_cmp);
-    *m
 }
 
 /// A frame candidate: its outline (refined) and the polarity of the region it outlines.

@@ -79,9 +79,9 @@ pub(crate) fn sample(
         let row_start = start + step2 * r as f64;
         for c in 0..len[0] {
             let p = row_start + step1 * c as f64;
-            let mut sum = at(p).and_then(|q| bilinear(image, q));
+            let mut sum = at(p).and_then(|q| image.bilinear(q.x, q.y));
             for d in &spread {
-                sum = match (sum, at(p + d).and_then(|q| bilinear(image, q))) {
+                sum = match (sum, at(p + d).and_then(|q| image.bilinear(q.x, q.y))) {
                     (Some(s), Some(v)) => Some(s + v),
                     _ => None,
                 };
@@ -90,21 +90,6 @@ pub(crate) fn sample(
         }
     }
     Some(Thumbnail { lo, len, values })
-}
-
-/// Bilinear interpolation at pixel coordinates `p = (col, row)`; `None` outside the image.
-pub(crate) fn bilinear(image: &GreyImage, p: Vector2<f64>) -> Option<f32> {
-    let (w, h) = (image.width(), image.height());
-    if !(p.x >= 0.0 && p.y >= 0.0 && p.x <= (w - 1) as f64 && p.y <= (h - 1) as f64) {
-        return None;
-    }
-    let (c0, r0) = (p.x.floor() as usize, p.y.floor() as usize);
-    let (c1, r1) = ((c0 + 1).min(w - 1), (r0 + 1).min(h - 1));
-    let (fx, fy) = ((p.x - c0 as f64) as f32, (p.y - r0 as f64) as f32);
-    let px = image.pixels();
-    let top = px[r0 * w + c0] * (1.0 - fx) + px[r0 * w + c1] * fx;
-    let bottom = px[r1 * w + c0] * (1.0 - fx) + px[r1 * w + c1] * fx;
-    Some(top * (1.0 - fy) + bottom * fy)
 }
 
 #[cfg(test)]
