@@ -319,7 +319,7 @@ pub struct Detector {
 }
 
 enum Inner {
-    Periodic(PeriodicDetector),
+    Periodic(Box<PeriodicDetector>),
     Megarena(Box<MegarenaDetector>),
     Stamp(Box<StampDetector>),
     HpCode(Box<HpCodeDetector>),
@@ -329,7 +329,7 @@ impl Detector {
     /// Builds the detector (validates the settings).
     pub fn new(config: DetectorConfig) -> Result<Self> {
         let inner = match config {
-            DetectorConfig::Periodic(p) => Inner::Periodic(PeriodicDetector::new(p)?),
+            DetectorConfig::Periodic(p) => Inner::Periodic(Box::new(PeriodicDetector::new(p)?)),
             DetectorConfig::Megarena(p) => Inner::Megarena(Box::new(MegarenaDetector::new(p)?)),
             DetectorConfig::Stamp(p) => Inner::Stamp(Box::new(StampDetector::new(p)?)),
             DetectorConfig::HpCode(p) => Inner::HpCode(Box::new(HpCodeDetector::new(p)?)),
