@@ -215,7 +215,7 @@ fn periodic_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
 fn hpcode_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
     let (id_a, id_b) = args.ids;
     let layout = |id: u64| {
-        HpCodeLayout::from_half_periods(args.period, args.code_size)
+        HpCodeLayout::from_code_size(args.period, args.code_size)
             .and_then(|l| l.with_id(id))
             .map_err(|e| format!("HP code (--code-size {}, id {id}): {e}", args.code_size))
     };

@@ -809,7 +809,7 @@ mod tests {
             ),
         ]);
         let layout = |id| {
-            vernier::layout::HpCodeLayout::from_half_periods(8.0, 33)
+            vernier::layout::HpCodeLayout::from_code_size(8.0, 33)
                 .and_then(|l| l.with_id(id))
                 .unwrap_or_else(|e| panic!("{e}"))
         };

@@ -16,7 +16,7 @@ pub fn outcome_json(o: &Outcome) -> Value {
         .map(|t| {
             json!({
                 "family": t.family.name(),
-                "half_periods": t.half_periods,
+                "code_size": t.code_size,
                 "id": t.id,
                 "origin_px": t.origin_px,
                 "angle": t.angle,
@@ -58,7 +58,7 @@ pub fn outcome_json(o: &Outcome) -> Value {
         "category": s.spec.category.name(),
         "size": [s.image.width(), s.image.height()],
         "polarity": format!("{:?}", s.polarity),
-        "code_size": s.half_periods,
+        "code_size": s.code_size,
         "degradations": s.degradations.describe(),
         "notes": s.notes,
         "generation_ms": s.timings.iter().map(|(k, v)| (k.to_string(), json!(v))).collect::<serde_json::Map<String, Value>>(),

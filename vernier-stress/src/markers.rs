@@ -73,10 +73,10 @@ impl Expectation {
 /// Which marker is drawn.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum MarkerKind {
-    /// HP code `half_periods` cells wide with its ID.
+    /// HP code `code_size` cells wide with its ID.
     HpCode {
         /// Width in half-period cells (33 or 37).
-        half_periods: usize,
+        code_size: usize,
         /// Encoded ID (`(W − 15)/2` bits).
         id: u64,
     },
@@ -107,7 +107,7 @@ impl MarkerKind {
     /// Side of the marker in half-period cells (HP: `W`; stamps: 69).
     pub fn cells(&self) -> usize {
         match *self {
-            MarkerKind::HpCode { half_periods, .. } => half_periods,
+            MarkerKind::HpCode { code_size, .. } => code_size,
             MarkerKind::Stamp { .. } => STAMP_CELLS,
         }
     }
@@ -115,8 +115,8 @@ impl MarkerKind {
     /// The layout to render.
     pub fn layout(&self, stamps: &StampSet) -> Result<Box<dyn Layout>> {
         Ok(match *self {
-            MarkerKind::HpCode { half_periods, id } => {
-                Box::new(HpCodeLayout::from_half_periods(PERIOD, half_periods)?.with_id(id)?)
+            MarkerKind::HpCode { code_size, id } => {
+                Box::new(HpCodeLayout::from_code_size(PERIOD, code_size)?.with_id(id)?)
             }
             MarkerKind::Stamp { index } => match stamps.layouts.get(index) {
                 Some(l) => Box::new(l.clone()),
@@ -251,8 +251,8 @@ impl Placed {
         let scale = j.determinant().abs().sqrt();
         Some(TruthMarker {
             family: self.kind.family(),
-            half_periods: match self.kind {
-                MarkerKind::HpCode { half_periods, .. } => Some(half_periods),
+            code_size: match self.kind {
+                MarkerKind::HpCode { code_size, .. } => Some(code_size),
                 MarkerKind::Stamp { .. } => None,
             },
             id: self.kind.id(),
@@ -271,7 +271,7 @@ pub struct TruthMarker {
     /// Family.
     pub family: Family,
     /// HP code width in half periods (`None` for stamps).
-    pub half_periods: Option<usize>,
+    pub code_size: Option<usize>,
     /// The ID the detector should report.
     pub id: u64,
     /// Image position `(col, row)` of the pattern origin, pixels.

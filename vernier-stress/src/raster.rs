@@ -325,7 +325,7 @@ mod tests {
 
     #[test]
     fn tile_equals_full_render_without_blur() -> Result<()> {
-        let layout = HpCodeLayout::from_half_periods(10.0, 33)?.with_id(5)?;
+        let layout = HpCodeLayout::from_code_size(10.0, 33)?.with_id(5)?;
         let (w, h) = (181, 170);
         let origin = Vector2::new(92.3, 81.7);
         let ps = 10.0 / 4.5;

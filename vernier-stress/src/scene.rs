@@ -133,7 +133,7 @@ pub struct Scene {
     /// Dot polarity of the scene's markers (not given to the detector: its default finds it).
     pub polarity: Polarity,
     /// HP code width given to the detector (`--code-size`), `None` for stamp scenes.
-    pub half_periods: Option<usize>,
+    pub code_size: Option<usize>,
     /// The degradations and their severities.
     pub degradations: Degradations,
     /// Human-readable notes (grey levels, clutter items, dust, hair).
@@ -151,7 +151,7 @@ impl Scene {
             Family::HpCode => DetectorSettings {
                 pattern_type: DetectorKind::HpCode,
                 period: Some(PERIOD),
-                code_size: self.half_periods,
+                code_size: self.code_size,
                 ..Default::default()
             },
             Family::Stamp => DetectorSettings {
@@ -264,19 +264,19 @@ impl Generator {
         } else {
             Polarity::DarkDots
         };
-        let half_periods = match spec.family {
+        let code_size = match spec.family {
             Family::HpCode => Some([33, 37][rng.random_range(0..2)]),
             Family::Stamp => None,
         };
         let mut notes = Vec::new();
-        let mut layout = self.place_markers(&spec, half_periods, &deg, &mut rng)?;
+        let mut layout = self.place_markers(&spec, code_size, &deg, &mut rng)?;
         // Optics that still resolve the dots: σ ≤ P/4 keeps ≥ 29 % of the grid's fundamental
         // (exp(−2π²σ²/P²)); the placement margins used the larger σ.
         if let Some(m) = layout.markers.first() {
             deg.blur_sigma = deg.blur_sigma.min((0.25 * m.period_px()).max(0.4));
         }
         if deg.clutter {
-            self.place_clutter(&spec, half_periods, &mut layout, &deg, &mut rng, &mut notes);
+            self.place_clutter(&spec, code_size, &mut layout, &deg, &mut rng, &mut notes);
         }
         lap("placement", &mut timings);
 
@@ -371,7 +371,7 @@ impl Generator {
             image,
             truth,
             polarity,
-            half_periods,
+            code_size,
             degradations: deg,
             notes,
             timings,
@@ -383,14 +383,14 @@ impl Generator {
     fn place_markers(
         &self,
         spec: &SceneSpec,
-        half_periods: Option<usize>,
+        code_size: Option<usize>,
         deg: &Degradations,
         rng: &mut SmallRng,
     ) -> Result<Layout> {
         let (lo, hi) = period_range(spec.family);
         let mut period_px = log_uniform(rng, lo, hi);
         let count = rng.random_range(1..=3usize);
-        let cells = half_periods.unwrap_or(STAMP_CELLS) as f64;
+        let cells = code_size.unwrap_or(STAMP_CELLS) as f64;
         let margin = 3.0 + 4.0 * deg.blur_sigma;
         // Image size from the first scale drawn: the markers may nearly fill the frame.
         let side = cells * period_px / 2.0;
@@ -434,9 +434,9 @@ impl Generator {
             let pixel_size = PERIOD / period_px;
             let gap = 2.0 * period_px;
             for _ in 0..count {
-                let kind = match half_periods {
+                let kind = match code_size {
                     Some(w) => MarkerKind::HpCode {
-                        half_periods: w,
+                        code_size: w,
                         id: rng.random_range(0..1u64 << ((w - 15) / 2)),
                     },
                     None => MarkerKind::Stamp {
@@ -487,7 +487,7 @@ impl Generator {
     fn place_clutter(
         &self,
         spec: &SceneSpec,
-        half_periods: Option<usize>,
+        code_size: Option<usize>,
         layout: &mut Layout,
         deg: &Degradations,
         rng: &mut SmallRng,
@@ -504,17 +504,11 @@ impl Generator {
         for _ in 0..n {
             if rng.random_bool(0.3) {
                 // Another marker.
-                let (kind, mut p_px) = match (spec.family, half_periods) {
+                let (kind, mut p_px) = match (spec.family, code_size) {
                     (Family::HpCode, Some(w0)) if rng.random_bool(0.5) => {
                         let w1 = if w0 == 33 { 37 } else { 33 };
                         let id = rng.random_range(0..1u64 << ((w1 - 15) / 2));
-                        (
-                            MarkerKind::HpCode {
-                                half_periods: w1,
-                                id,
-                            },
-                            period_px,
-                        )
+                        (MarkerKind::HpCode { code_size: w1, id }, period_px)
                     }
                     (Family::HpCode, _) => (
                         MarkerKind::Stamp {
@@ -526,10 +520,7 @@ impl Generator {
                         let w1 = [33, 37][rng.random_range(0..2)];
                         let id = rng.random_range(0..1u64 << ((w1 - 15) / 2));
                         (
-                            MarkerKind::HpCode {
-                                half_periods: w1,
-                                id,
-                            },
+                            MarkerKind::HpCode { code_size: w1, id },
                             log_uniform(rng, 4.0, 40.0),
                         )
                     }

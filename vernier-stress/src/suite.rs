@@ -76,7 +76,7 @@ impl Detectors {
         generator: &Generator,
         scene: &Scene,
     ) -> (std::result::Result<Vec<MarkerPose>, String>, f64) {
-        let key = (scene.spec.family, scene.half_periods);
+        let key = (scene.spec.family, scene.code_size);
         let detector = match self.cache.entry(key) {
             Entry::Occupied(e) => e.into_mut(),
             Entry::Vacant(e) => {

@@ -247,9 +247,9 @@ impl DetectorSettings {
             }
             MarkerKind::HpCode => {
                 // W from the flag, else from an HPCodePattern file (`size` dots → 2·size − 1).
-                let half_periods = match (self.code_size, &pattern) {
+                let code_size = match (self.code_size, &pattern) {
                     (Some(w), _) => w,
-                    (None, Some(Pattern::HpCode(layout))) => layout.half_periods(),
+                    (None, Some(Pattern::HpCode(layout))) => layout.code_size(),
                     (None, _) => {
                         return Err(Error::parameter(
                             "code_size",
@@ -257,7 +257,7 @@ impl DetectorSettings {
                         ))
                     }
                 };
-                let mut p = HpCodeParams::new(require_period()?, half_periods);
+                let mut p = HpCodeParams::new(require_period()?, code_size);
                 p.window_size = self.window_size;
                 p.polarity = self.polarity;
                 p.validate()?;

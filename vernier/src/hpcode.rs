@@ -67,8 +67,8 @@ pub struct HpCodeParams {
     /// "numberHalfPeriods", CLI `--code-size`): `W ≡ 1 (mod 4)`, ≥ 17; 33 and 37 in practice.
     /// A prior: markers whose finders are `W' − 7` modules apart for any odd `W'` within 8
     /// cells of `W` are accepted, and `W'` is measured (reported in
-    /// [`HpCodeMarker::half_periods`]); the ID layout follows `W'`.
-    pub half_periods: usize,
+    /// [`HpCodeMarker::code_size`]); the ID layout follows `W'`.
+    pub code_size: usize,
     /// Side of the square window analysed around each marker, pixels (even, ≥ 32). `None`
     /// (default) sizes it for each marker: the largest FFT-friendly size (`2^a·3^b·5^c`) that
     /// stays inside the marker and clear of its finders at the marker's angle (0.55–0.7 marker
@@ -120,11 +120,11 @@ pub enum PoseFormula {
 }
 
 impl HpCodeParams {
-    /// Defaults for markers `half_periods` cells wide with physical period `period`.
-    pub fn new(period: f64, half_periods: usize) -> Self {
+    /// Defaults for markers `code_size` cells wide with physical period `period`.
+    pub fn new(period: f64, code_size: usize) -> Self {
         HpCodeParams {
             period,
-            half_periods,
+            code_size,
             window_size: None,
             apodize: None,
             polarity: None,
@@ -140,8 +140,8 @@ impl HpCodeParams {
     /// (docs/design.md#phase-bandpass, ring band-pass from 20 bins) and [`PoseFormula::Original`].
     /// Its result moves by up to ~3e-3 rad with the window size on real images (Image96: 320 to 640
     /// px), about 10 times more than the default's.
-    pub fn original(period: f64, half_periods: usize, window_size: usize) -> Self {
-        let mut p = HpCodeParams::new(period, half_periods);
+    pub fn original(period: f64, code_size: usize, window_size: usize) -> Self {
+        let mut p = HpCodeParams::new(period, code_size);
         p.window_size = Some(window_size);
         p.apodize = Some(true);
         p.phase.refine_iterations = 0;
@@ -158,12 +158,12 @@ impl HpCodeParams {
                 format!("must be > 0, got {}", self.period),
             ));
         }
-        if self.half_periods % 4 != 1 || self.half_periods < 17 {
+        if self.code_size % 4 != 1 || self.code_size < 17 {
             return Err(Error::parameter(
                 "code_size",
                 format!(
                     "HP code width in half periods must be ≡ 1 (mod 4) and ≥ 17 (33, 37, ...), got {}",
-                    self.half_periods
+                    self.code_size
                 ),
             ));
         }
@@ -200,7 +200,7 @@ pub struct HpCodeMarker {
     /// missing (docs/design.md#hp-id-encoding).
     pub id: u64,
     /// Measured marker width in half-period cells `W` (odd; the setting is only a prior).
-    pub half_periods: usize,
+    pub code_size: usize,
     /// Pose of the marker (docs/design.md#frames). Pattern origin: the marker centre, i.e. the
     /// centre dot (`W ≡ 1 mod 4`) or the gap between the four central dots (`W ≡ 3 mod 4`).
     pub pose: Pose,
@@ -236,7 +236,7 @@ pub struct HpCodeMarker {
 /// # fn main() -> vernier::Result<()> {
 /// // A 33-cell HP code (17 × 17 dots, 9 ID bits) of 10 µm period carrying ID 361, seen at
 /// // 1.25 µm per pixel (a 132-px marker) turned by 2.5 rad.
-/// let layout = HpCodeLayout::from_half_periods(10.0, 33)?.with_id(361)?;
+/// let layout = HpCodeLayout::from_code_size(10.0, 33)?.with_id(361)?;
 /// let truth = Pose::planar(6.0, -4.0, 2.5, 1.25);
 /// let options = RenderOptions { blur_sigma: 0.5, ..RenderOptions::new(256, 256) };
 /// let image = render(&layout, &truth, &options)?;
@@ -265,7 +265,7 @@ impl HpCodeDetector {
     pub fn new(params: HpCodeParams) -> Result<Self> {
         // The shared physical ranges (vernier::limits) first, then the detector's own rules.
         crate::limits::check_period(params.period)?;
-        crate::limits::check_code_size(params.half_periods)?;
+        crate::limits::check_code_size(params.code_size)?;
         if let Some(size) = params.window_size {
             crate::limits::check_window_size(size)?;
         }
@@ -296,7 +296,7 @@ impl HpCodeDetector {
     /// without markers gives an empty list. Markers sharing an ID are all returned.
     pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<HpCodeMarker>> {
         let finders = self.find_finders(image);
-        let triples = group_finders(&finders, self.params.half_periods);
+        let triples = group_finders(&finders, self.params.code_size);
         let mut markers: Vec<HpCodeMarker> = Vec::with_capacity(triples.len());
         for triple in &triples {
             if let Some(m) = self.measure(image, triple)? {
@@ -309,7 +309,7 @@ impl HpCodeDetector {
             .iter()
             .map(|f| markers.iter().any(|m| m.finders.uses(f)))
             .collect();
-        for triple in pair_hypotheses(&finders, self.params.half_periods, &used, MAX_HYPOTHESES) {
+        for triple in pair_hypotheses(&finders, self.params.code_size, &used, MAX_HYPOTHESES) {
             let coarse = triple.center();
             let module = triple.module_px;
             if markers
@@ -433,7 +433,7 @@ impl HpCodeDetector {
             let fine = found.2.dots;
             let module = (fine.step_x.norm() + fine.step_y.norm()) / 4.0;
             let size2 = self.params.window_size.unwrap_or_else(|| {
-                let width = found.2.half_periods as f64 * module;
+                let width = found.2.code_size as f64 * module;
                 auto_window_size(width, module, found.2.alpha(false))
             });
             if window_center(fine.center) != found.0 || size2 != size {
@@ -490,7 +490,7 @@ impl HpCodeDetector {
         );
         Ok(Some(HpCodeMarker {
             id: reading.id,
-            half_periods: grid.half_periods,
+            code_size: grid.code_size,
             pose,
             origin_px: grid.dots.center,
             polarity: triple.polarity,

@@ -29,7 +29,7 @@
 //! # fn main() -> vernier::Result<()> {
 //! // A synthetic frame: an HP code (33 half-period cells, 10 µm period, ID 5) at a known pose.
 //! // A real one would come from `GreyImage::open("frame.png")?`.
-//! let marker = HpCodeLayout::from_half_periods(10.0, 33)?.with_id(5)?;
+//! let marker = HpCodeLayout::from_code_size(10.0, 33)?.with_id(5)?;
 //! let truth = Pose::planar(12.0, 7.5, -0.4, 1.25); // µm, µm, rad, µm per pixel
 //! let options = RenderOptions { blur_sigma: 0.5, ..RenderOptions::new(240, 200) };
 //! let frame: GreyImage = render(&marker, &truth, &options)?;

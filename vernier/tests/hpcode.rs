@@ -23,15 +23,15 @@ struct Truth {
     origin_px: Vector2<f64>,
 }
 
-/// `count` markers `half_periods` cells wide at random poses, IDs and scales (period 7–11 px),
+/// `count` markers `code_size` cells wide at random poses, IDs and scales (period 7–11 px),
 /// placed so that no marker enters another's analysis window.
 fn random_scene(
     rng: &mut SmallRng,
     count: usize,
-    half_periods: usize,
+    code_size: usize,
     size: (usize, usize),
 ) -> (GreyImage, Vec<Truth>) {
-    let bits = (half_periods - 15) / 2;
+    let bits = (code_size - 15) / 2;
     let center = Vector2::new((size.0 / 2) as f64, (size.1 / 2) as f64);
     let mut placed: Vec<(Truth, f64)> = Vec::new();
     let mut attempts = 0;
@@ -39,7 +39,7 @@ fn random_scene(
         attempts += 1;
         assert!(attempts < 100_000, "cannot place {count} markers");
         let period_px: f64 = rng.random_range(7.0..11.0);
-        let width_px = half_periods as f64 * period_px / 2.0;
+        let width_px = code_size as f64 * period_px / 2.0;
         let half_diag = width_px / std::f64::consts::SQRT_2 + 6.0;
         let pos = Vector2::new(
             rng.random_range(half_diag..size.0 as f64 - half_diag),
@@ -63,7 +63,7 @@ fn random_scene(
     let layouts: Vec<HpCodeLayout> = placed
         .iter()
         .map(|(t, _)| {
-            HpCodeLayout::from_half_periods(PERIOD, half_periods)
+            HpCodeLayout::from_code_size(PERIOD, code_size)
                 .unwrap()
                 .with_id(t.id)
                 .unwrap()
@@ -86,14 +86,14 @@ fn synthetic_scenes_every_marker_found_with_its_id_and_pose() {
     let (mut worst_px, mut worst_rad, mut markers) = (0.0f64, 0.0f64, 0);
     let mut worst_scale = 0.0f64;
     for count in 1..=6 {
-        let half_periods = if count % 2 == 0 { 33 } else { 37 };
+        let code_size = if count % 2 == 0 { 33 } else { 37 };
         let size = match count {
             1 | 2 => (640, 512),
             3 | 4 => (1024, 768),
             _ => (1280, 1024),
         };
-        let (image, truths) = random_scene(&mut rng, count, half_periods, size);
-        let mut detector = HpCodeDetector::new(HpCodeParams::new(PERIOD, half_periods)).unwrap();
+        let (image, truths) = random_scene(&mut rng, count, code_size, size);
+        let mut detector = HpCodeDetector::new(HpCodeParams::new(PERIOD, code_size)).unwrap();
         let found = detector.detect(&image).unwrap();
         assert_eq!(found.len(), truths.len(), "scene of {count}: {found:#?}");
         for t in &truths {
@@ -102,7 +102,7 @@ fn synthetic_scenes_every_marker_found_with_its_id_and_pose() {
                 .find(|m| (m.origin_px - t.origin_px).norm() < 2.0)
                 .unwrap_or_else(|| panic!("scene of {count}: marker {} missing", t.id));
             assert_eq!(m.id, t.id, "scene of {count}");
-            assert_eq!(m.half_periods, half_periods);
+            assert_eq!(m.code_size, code_size);
             assert_eq!(m.polarity, Polarity::BrightDots);
             assert!(!m.mirrored);
             assert!(m.id_confidence > 0.5, "{}", m.id_confidence);
@@ -132,7 +132,7 @@ fn synthetic_scenes_every_marker_found_with_its_id_and_pose() {
 
 #[test]
 fn duplicate_ids_are_all_reported_and_flagged() {
-    let layout = HpCodeLayout::from_half_periods(PERIOD, 33)
+    let layout = HpCodeLayout::from_code_size(PERIOD, 33)
         .unwrap()
         .with_id(5)
         .unwrap();
@@ -175,7 +175,7 @@ fn settings_and_errors() {
     };
     match from_file.to_config().unwrap() {
         vernier::DetectorConfig::HpCode(p) => {
-            assert_eq!((p.period, p.half_periods), (15.5, 37));
+            assert_eq!((p.period, p.code_size), (15.5, 37));
         }
         other => panic!("{other:?}"),
     }
@@ -249,7 +249,7 @@ fn real_images_96_to_105_match_the_original() {
         assert_eq!(refined.len(), 2, "Image{number}");
         for (id, r) in reference.iter().enumerate() {
             let m = by_id(&found, id as u64);
-            assert_eq!(m.half_periods, 33);
+            assert_eq!(m.code_size, 33);
             let p = m.pose;
             worst_xy = worst_xy.max((p.x - r[0]).abs()).max((p.y - r[1]).abs());
             worst_alpha = worst_alpha.max((p.alpha - r[2]).abs());
@@ -286,7 +286,7 @@ fn dark_dot_image_polarity_from_the_finders() {
         assert_eq!(m.polarity, Polarity::DarkDots);
         // Documented as W = 33, these markers are 39 cells wide (20 dots, finders 16 periods
         // apart); their centre is then the gap between four dots.
-        assert_eq!(m.half_periods, 39);
+        assert_eq!(m.code_size, 39);
         assert!(!m.mirrored);
     }
     // The polarity setting filters; the bright setting finds nothing here.

@@ -35,7 +35,7 @@ fn render(
     let layouts: Vec<HpCodeLayout> = markers
         .iter()
         .map(|m| {
-            HpCodeLayout::from_half_periods(PERIOD, code_size)
+            HpCodeLayout::from_code_size(PERIOD, code_size)
                 .unwrap()
                 .with_id(m.id)
                 .unwrap()

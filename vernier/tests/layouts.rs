@@ -190,7 +190,7 @@ fn hp_code_bitmaps_equal_the_generated_markers() {
     for w in [33, 37] {
         let path = layouts_dir().join(format!("HPCode{w}x{w}.png"));
         let from_png = BitmapLayout::from_image_file(10.0, &path).unwrap();
-        let generated = HpCodeLayout::from_half_periods(10.0, w).unwrap();
+        let generated = HpCodeLayout::from_code_size(10.0, w).unwrap();
         assert_eq!(from_png.cells(), generated.to_bitmap().cells(), "W = {w}");
         let cells: Vec<Vec<bool>> = from_png
             .rows()
@@ -303,7 +303,7 @@ fn hp_code_id_round_trip() {
     for w in [33usize, 37] {
         let max_id = (1u64 << ((w - 15) / 2)) - 1;
         for id in [0, 1, 2, 8, 16, 32, 0b1_0101_0101, max_id] {
-            let l = HpCodeLayout::from_half_periods(8.0, w)
+            let l = HpCodeLayout::from_code_size(8.0, w)
                 .unwrap()
                 .with_id(id)
                 .unwrap();
@@ -318,7 +318,7 @@ fn hp_code_id_round_trip() {
             };
             assert_eq!(back.id(), id);
         }
-        let e = HpCodeLayout::from_half_periods(8.0, w)
+        let e = HpCodeLayout::from_code_size(8.0, w)
             .unwrap()
             .with_id(max_id + 1)
             .unwrap_err();

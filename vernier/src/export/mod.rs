@@ -162,7 +162,7 @@ pub fn describe(pattern: &Pattern) -> Vec<String> {
                 "HPCodePattern {} x {} dots ({} half-periods)",
                 l.size(),
                 l.size(),
-                l.half_periods()
+                l.code_size()
             ));
             lines.push(format!("id: {}", l.id()));
         }

@@ -38,7 +38,7 @@ pub(crate) struct MarkerGrid {
     /// Whole periods between the window centre's node and the marker centre along x and y.
     pub period_shift: (f64, f64),
     /// Measured marker width in half-period cells `W` (odd).
-    pub half_periods: usize,
+    pub code_size: usize,
     /// Dot positions (image pixels).
     pub dots: DotGrid,
 }
@@ -118,9 +118,9 @@ pub(crate) fn locate(
         log::trace!("finder legs {leg_x:?}, {leg_y:?} periods: not whole");
         return None;
     }
-    let half_periods = 7 + 2 * whole as usize;
+    let code_size = 7 + 2 * whole as usize;
     // Centre cell (W − 1)/2 lies (W − 1)/4 periods from the corner dot (phase 0).
-    let center_phase = if (half_periods - 1) % 4 == 0 { 0.0 } else { PI };
+    let center_phase = if (code_size - 1) % 4 == 0 { 0.0 } else { PI };
     let coarse = triple.center() - window_center;
     let kx = ((plane_x.at(coarse.x, coarse.y) - center_phase) / TAU).round();
     let ky = ((plane_y.at(coarse.x, coarse.y) - center_phase) / TAU).round();
@@ -135,12 +135,12 @@ pub(crate) fn locate(
         x_from_plane: ix,
         center_phase,
         period_shift: (kx, ky),
-        half_periods,
+        code_size,
         dots: DotGrid {
             center: window_center + offset,
             step_x: inverse * Vector2::new(TAU, 0.0),
             step_y: inverse * Vector2::new(0.0, TAU),
-            size: half_periods.div_ceil(2),
+            size: code_size.div_ceil(2),
         },
     })
 }
@@ -191,7 +191,7 @@ mod tests {
         let center = window_center + node;
         let t = triple(alpha, center, 130.0);
         let g = locate(&planes(alpha, node), &t, window_center).unwrap();
-        assert_eq!(g.half_periods, 33);
+        assert_eq!(g.code_size, 33);
         assert!(
             (g.dots.center - center).norm() < 1e-9,
             "{:?}",
@@ -215,7 +215,7 @@ mod tests {
         let center = window_center + node + (Vector2::new(c, s) + Vector2::new(-s, c)) * 5.0;
         let t = triple(alpha, center, 160.0);
         let g = locate(&planes(alpha, node), &t, window_center).unwrap();
-        assert_eq!(g.half_periods, 39);
+        assert_eq!(g.code_size, 39);
         assert!((g.dots.center - center).norm() < 1e-9);
     }
 }

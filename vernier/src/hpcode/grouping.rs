@@ -92,11 +92,11 @@ impl FinderTriple {
     }
 }
 
-/// Marker triples among `finders` for markers about `half_periods` (W) cells wide, best first.
+/// Marker triples among `finders` for markers about `code_size` (W) cells wide, best first.
 /// `right`/`bottom` are assigned so that `bottom` is 90° clockwise on screen from `right`
 /// (a marker seen from the front); a mirrored marker is recognised later from its ID row.
-pub fn group_finders(finders: &[Finder], half_periods: usize) -> Vec<FinderTriple> {
-    let legs = LegRange::new(half_periods);
+pub fn group_finders(finders: &[Finder], code_size: usize) -> Vec<FinderTriple> {
+    let legs = LegRange::new(code_size);
     let mut triples = Vec::new();
     let n = finders.len();
     let mut near = Vec::new();
@@ -140,11 +140,11 @@ pub fn group_finders(finders: &[Finder], half_periods: usize) -> Vec<FinderTripl
 /// confirmed by the marker's grid and ID before it becomes a marker.
 pub fn pair_hypotheses(
     finders: &[Finder],
-    half_periods: usize,
+    code_size: usize,
     used: &[bool],
     limit: usize,
 ) -> Vec<FinderTriple> {
-    let legs = LegRange::new(half_periods);
+    let legs = LegRange::new(code_size);
     let mut out = Vec::new();
     for a in 0..finders.len() {
         for b in a + 1..finders.len() {
@@ -200,13 +200,13 @@ struct LegRange {
 }
 
 impl LegRange {
-    fn new(half_periods: usize) -> Self {
-        let lo = half_periods.saturating_sub(WIDTH_SLACK).max(17) - 7;
-        let hi = half_periods + WIDTH_SLACK - 7;
+    fn new(code_size: usize) -> Self {
+        let lo = code_size.saturating_sub(WIDTH_SLACK).max(17) - 7;
+        let hi = code_size + WIDTH_SLACK - 7;
         LegRange {
             min: lo as f64 * (1.0 - SCALE_TOLERANCE),
             max: hi as f64 * (1.0 + SCALE_TOLERANCE),
-            nominal: half_periods.saturating_sub(7).max(1) as f64,
+            nominal: code_size.saturating_sub(7).max(1) as f64,
         }
     }
 }

@@ -429,7 +429,7 @@ mod tests {
     #[test]
     fn reads_ids_of_both_polarities() {
         for id in [0u64, 1, 0b1_0110_0101, 511] {
-            let layout = HpCodeLayout::from_half_periods(10.0, 33)
+            let layout = HpCodeLayout::from_code_size(10.0, 33)
                 .unwrap()
                 .with_id(id)
                 .unwrap();

@@ -59,19 +59,19 @@ impl HpCodeLayout {
         })
     }
 
-    /// Marker `half_periods` cells wide (`W = 2n − 1`, the detector's "numberHalfPeriods";
+    /// Marker `code_size` cells wide (`W = 2n − 1`, the detector's "numberHalfPeriods";
     /// `W ≡ 1 (mod 4)`, ≥ 17, e.g. 33 or 37) at `period` (pattern units), ID 0.
-    pub fn from_half_periods(period: f64, half_periods: usize) -> Result<Self> {
-        if half_periods % 4 != 1 || half_periods < 2 * MIN_SIZE - 1 {
+    pub fn from_code_size(period: f64, code_size: usize) -> Result<Self> {
+        if code_size % 4 != 1 || code_size < 2 * MIN_SIZE - 1 {
             return Err(Error::pattern(
                 "numberHalfPeriods",
                 format!(
-                    "must be ≡ 1 (mod 4) and ≥ {}, got {half_periods}",
+                    "must be ≡ 1 (mod 4) and ≥ {}, got {code_size}",
                     2 * MIN_SIZE - 1
                 ),
             ));
         }
-        Self::new(period, half_periods.div_ceil(2))
+        Self::new(period, code_size.div_ceil(2))
     }
 
     /// Sets the marker ID; errors (key `id`) when `id` does not fit in
@@ -83,7 +83,7 @@ impl HpCodeLayout {
                 "id",
                 format!(
                     "{id} does not fit in the {bits} ID bits of a {}-cell marker (max {})",
-                    self.half_periods(),
+                    self.code_size(),
                     (1u64 << bits) - 1
                 ),
             ));
@@ -103,7 +103,7 @@ impl HpCodeLayout {
         self.size
     }
     /// Width in half-period cells `W = 2n − 1`.
-    pub fn half_periods(&self) -> usize {
+    pub fn code_size(&self) -> usize {
         2 * self.size - 1
     }
     /// Marker ID.
@@ -136,7 +136,7 @@ impl HpCodeLayout {
     /// `Some(true)` on a finder ring or centre cell, `Some(false)` in a finder's gap, `None`
     /// outside the three finder squares.
     fn finder_cell(&self, row: usize, col: usize) -> Option<bool> {
-        let far = self.half_periods() - FINDER_CELLS;
+        let far = self.code_size() - FINDER_CELLS;
         [(0, 0), (0, far), (far, 0)]
             .into_iter()
             .find(|&(r0, c0)| {
@@ -153,7 +153,7 @@ impl HpCodeLayout {
     /// True when half-period cell `(row, col)` (`< W`) is fabricated material: finder ring or
     /// centre, or a dot on an even-even cell that no ID bit removes. False outside the marker.
     pub fn cell_is_set(&self, row: usize, col: usize) -> bool {
-        let w = self.half_periods();
+        let w = self.code_size();
         if row >= w || col >= w {
             return false;
         }
@@ -166,7 +166,7 @@ impl HpCodeLayout {
     /// The marker as a `W × W` half-period [`BitmapLayout`] (same period and metadata), the
     /// form used to edit markers or build bitmap templates.
     pub fn to_bitmap(&self) -> BitmapLayout {
-        let w = self.half_periods();
+        let w = self.code_size();
         let cells = (0..w * w).map(|i| self.cell_is_set(i / w, i % w)).collect();
         BitmapLayout::from_cells_unchecked(self.period, w, w, cells)
             .with_metadata(self.metadata.clone())
@@ -206,7 +206,7 @@ impl Layout for HpCodeLayout {
     fn visit_rects(&self, region: &Rect, visit: &mut dyn FnMut(Rect)) {
         let half = self.period / 2.0;
         let first = -self.width() / 2.0 + half / 2.0;
-        let w = self.half_periods();
+        let w = self.code_size();
         // Rectangles are exactly the set half-period cells, so they agree with the intensity.
         visit_grid_dots(
             half,
@@ -230,7 +230,7 @@ mod tests {
     #[test]
     fn geometry_and_rect_count() {
         let l = HpCodeLayout::new(10.0, 17).unwrap();
-        assert_eq!(l.half_periods(), 33);
+        assert_eq!(l.code_size(), 33);
         assert_eq!(l.width(), 165.0);
         assert_eq!(l.id_bit_count(), 9);
         let rects = l.rects_in(&l.bounds());
@@ -255,7 +255,7 @@ mod tests {
 
     #[test]
     fn id_clears_top_row_dots() {
-        let l = HpCodeLayout::from_half_periods(8.0, 37)
+        let l = HpCodeLayout::from_code_size(8.0, 37)
             .unwrap()
             .with_id(0b101)
             .unwrap();
@@ -276,8 +276,8 @@ mod tests {
         assert!(HpCodeLayout::new(10.0, 18).is_err());
         assert!(HpCodeLayout::new(10.0, 7).is_err());
         assert!(HpCodeLayout::new(0.0, 17).is_err());
-        assert!(HpCodeLayout::from_half_periods(10.0, 35).is_err());
-        let l = HpCodeLayout::from_half_periods(10.0, 33).unwrap();
+        assert!(HpCodeLayout::from_code_size(10.0, 35).is_err());
+        let l = HpCodeLayout::from_code_size(10.0, 33).unwrap();
         assert!(l.clone().with_id(511).is_ok());
         let e = l.with_id(512).unwrap_err().to_string();
         assert!(e.contains("`id`") && e.contains("9 ID bits"), "{e}");
