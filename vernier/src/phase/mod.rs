@@ -28,6 +28,7 @@ pub use plane::{fit_plane, wrap_angle, wrap_to_pi, PhasePlane};
 
 use crate::error::{Error, Result};
 use crate::grey_image::GreyImage;
+use crate::lru::Lru;
 use bandpass::BandpassPlan;
 use refine::RefinePlan;
 use spectrum::SpectrumPlan;
@@ -316,10 +317,19 @@ impl SizeCache {
 /// # Ok(())
 /// # }
 /// ```
-#[derive(Default)]
 pub struct PhaseEngine {
-    caches: Vec<SizeCache>,
+    /// Plans and buffers by `(rows, cols, σ bits, full resolution)`.
+    caches: Lru<(usize, usize, u64, bool), SizeCache>,
     planners: Planners,
+}
+
+impl Default for PhaseEngine {
+    fn default() -> Self {
+        PhaseEngine {
+            caches: Lru::new(CACHED_SIZES),
+            planners: Planners::default(),
+        }
+    }
 }
 
 /// How many image sizes keep their plans (HP/Stamp detectors alternate full frames and
@@ -353,33 +363,18 @@ impl PhaseEngine {
         sigma: f64,
         full_resolution: bool,
     ) -> (&mut SizeCache, &mut Planners) {
-        let matches = |c: &SizeCache| {
-            c.rows == rows
-                && c.cols == cols
-                && c.sigma == sigma
-                && c.full_resolution == full_resolution
-        };
-        if let Some(pos) = self.caches.iter().position(matches) {
-            // Most recently used goes last.
-            let cache = self.caches.remove(pos);
-            self.caches.push(cache);
-        } else {
-            if self.caches.len() >= CACHED_SIZES {
-                self.caches.remove(0);
-            }
-            self.caches.push(SizeCache {
-                rows,
-                cols,
-                sigma,
-                full_resolution,
-                spectrum: None,
-                bandpass: None,
-                refine: None,
-                binned: Vec::new(),
-            });
-        }
-        let last = self.caches.len() - 1;
-        (&mut self.caches[last], &mut self.planners)
+        let key = (rows, cols, sigma.to_bits(), full_resolution);
+        let cache = self.caches.get_or_insert_with(key, || SizeCache {
+            rows,
+            cols,
+            sigma,
+            full_resolution,
+            spectrum: None,
+            bandpass: None,
+            refine: None,
+            binned: Vec::new(),
+        });
+        (cache, &mut self.planners)
     }
 
     /// Measures the two phase planes of `image` (bright dots; invert dark-dot images first, see

@@ -340,7 +340,7 @@ pub struct StampDetector {
     /// Frame thickness over side, per bitmap.
     frame_fractions: Vec<f64>,
     finder: QuadFinder,
-    windows: Vec<(usize, Vec<f32>)>,
+    windows: crate::lru::Lru<usize, Vec<f32>>,
     /// Windows measured in the current frame: centre, side and bright-dot analysis.
     measured: Vec<((i64, i64), usize, PhaseAnalysis)>,
 }
@@ -383,7 +383,7 @@ impl StampDetector {
             shapes,
             frame_fractions,
             finder: QuadFinder::default(),
-            windows: Vec::new(),
+            windows: crate::lru::Lru::new(CACHED_WINDOWS),
             measured: Vec::new(),
         })
     }
@@ -997,18 +997,9 @@ impl StampDetector {
     /// weights as [`crate::snapshot::Snapshot::apodize`] with
     /// [`StampParams::apodization_exponent`].
     fn apodization(&mut self, size: usize) -> &[f32] {
-        if let Some(pos) = self.windows.iter().position(|(s, _)| *s == size) {
-            let w = self.windows.remove(pos);
-            self.windows.push(w);
-        } else {
-            if self.windows.len() >= CACHED_WINDOWS {
-                self.windows.remove(0);
-            }
-            self.windows
-                .push((size, radial_window(size, self.params.apodization_exponent)));
-        }
-        let last = self.windows.len() - 1;
-        &self.windows[last].1
+        let exponent = self.params.apodization_exponent;
+        self.windows
+            .get_or_insert_with(size, || radial_window(size, exponent))
     }
 }
 
