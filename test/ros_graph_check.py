@@ -134,6 +134,8 @@ def run_session(domain, work, truth, frames, check, wait_for, tol_m, size):
                 # Decoded again from the node's CDR with the standard definitions.
                 raw = array.serialize(use_version_2=False)
                 std = standard_types.decode(store, raw, "vision_msgs/msg/Detection3DArray")
+                again = bytes(store.serialize_cdr(std, "vision_msgs/msg/Detection3DArray"))
+                assert again == bytes(raw), "Detection3DArray is not byte-exact standard CDR"
                 assert len(std.detections) == 1, len(std.detections)
                 d = std.detections[0]
                 assert d.results[0].hypothesis.class_id == "0", d.results[0].hypothesis

@@ -5,7 +5,8 @@
 //! 1024×1024 crop of it holding both markers, for the default settings (window inside each
 //! marker, refined planes) and for the original's 512-px window, plus the cost of the finder
 //! search alone and the rest per marker (grouping, window, phase engine — once or twice, see
-//! `HpCodeDetector` —, ID). Reference: the original C++ takes 94 ms (full frame) and 61 ms (crop) on the
+//! `HpCodeDetector` —, ID), with the markers measured on one thread and on every core.
+//! Reference: the original C++ takes 94 ms (full frame) and 61 ms (crop) on the
 //! project's 2-core machine (W 33, window 512). Images come from `$VERNIER_DATA_DIR`, else
 //! `../shared/data`.
 
@@ -70,9 +71,15 @@ fn main() {
     );
     for (name, image, original_ms) in [("2456x2054", &full, 94.0), ("1024x1024 crop", &crop, 61.0)]
     {
-        for (window, size) in [("auto", None), ("512", Some(512))] {
+        // Markers measured on 1 thread, then on every core (`HpCodeParams::threads` 0).
+        for (window, size, threads) in [
+            ("auto, 1 thread", None, 1),
+            ("auto", None, 0),
+            ("512", Some(512), 0),
+        ] {
             let mut params = HpCodeParams::new(15.5, 33);
             params.window_size = size;
+            params.threads = threads;
             let mut detector = match HpCodeDetector::new(params) {
                 Ok(d) => d,
                 Err(e) => {

@@ -99,6 +99,9 @@ pub struct HpCodeParams {
     pub phase: PhaseParams,
     /// How orientation, pixel size and position follow from the two planes.
     pub pose_formula: PoseFormula,
+    /// Threads measuring the candidate markers of a frame in parallel (they are independent);
+    /// 0 (default) = every core the system offers. Results do not depend on it.
+    pub threads: usize,
 }
 
 /// How the pose of a marker follows from its two phase planes.
@@ -132,6 +135,7 @@ impl HpCodeParams {
             min_id_confidence: 0.2,
             phase: PhaseParams::default(),
             pose_formula: PoseFormula::Symmetric,
+            threads: 0,
         }
     }
 
@@ -254,10 +258,34 @@ pub struct HpCodeMarker {
 /// ```
 pub struct HpCodeDetector {
     params: HpCodeParams,
-    engine: PhaseEngine,
     scanner: FinderScanner,
-    /// Radial Hann window of the last size and centre used.
+    /// One per measuring thread (the first serves the sequential passes).
+    workers: Vec<MarkerWorker>,
+}
+
+/// What one thread needs to measure markers: its phase engine (plans and buffers) and the
+/// last radial Hann window.
+#[derive(Default)]
+struct MarkerWorker {
+    engine: PhaseEngine,
     hann: (usize, f64, Vec<f32>),
+}
+
+/// One marker measurement: the settings and a worker's engine.
+struct Measure<'a> {
+    params: &'a HpCodeParams,
+    engine: &'a mut PhaseEngine,
+    hann: &'a mut (usize, f64, Vec<f32>),
+}
+
+impl<'a> Measure<'a> {
+    fn new(params: &'a HpCodeParams, worker: &'a mut MarkerWorker) -> Self {
+        Measure {
+            params,
+            engine: &mut worker.engine,
+            hann: &mut worker.hann,
+        }
+    }
 }
 
 impl HpCodeDetector {
@@ -272,9 +300,8 @@ impl HpCodeDetector {
         params.validate()?;
         Ok(HpCodeDetector {
             params,
-            engine: PhaseEngine::new(),
             scanner: FinderScanner::default(),
-            hann: (0, 0.0, Vec::new()),
+            workers: vec![MarkerWorker::default()],
         })
     }
 
@@ -297,12 +324,7 @@ impl HpCodeDetector {
     pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<HpCodeMarker>> {
         let finders = self.find_finders(image);
         let triples = group_finders(&finders, self.params.code_size);
-        let mut markers: Vec<HpCodeMarker> = Vec::with_capacity(triples.len());
-        for triple in &triples {
-            if let Some(m) = self.measure(image, triple)? {
-                markers.push(m);
-            }
-        }
+        let mut markers = self.measure_all(image, &triples)?;
         // Markers with a finder missing (dust, damage): hypotheses from the finders left over,
         // each kept only when its grid and ID confirm it.
         let used: Vec<bool> = finders
@@ -318,13 +340,71 @@ impl HpCodeDetector {
             {
                 continue;
             }
-            if let Some(m) = self.measure(image, &triple)? {
+            // Sequential: each accepted hypothesis hides the ones near it.
+            let worker = &mut self.workers[0];
+            if let Some(m) = Measure::new(&self.params, worker).measure(image, &triple)? {
                 markers.push(m);
             }
         }
         Ok(markers)
     }
 
+    /// The markers of `triples`, in their order: contiguous runs of triples measured on
+    /// separate threads (each with its own engine), joined in order, so that the result is
+    /// the sequential one whatever the thread count.
+    fn measure_all(
+        &mut self,
+        image: &GreyImage,
+        triples: &[FinderTriple],
+    ) -> Result<Vec<HpCodeMarker>> {
+        let cores = match self.params.threads {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            n => n,
+        };
+        let threads = cores.min(triples.len()).max(1);
+        while self.workers.len() < threads {
+            self.workers.push(MarkerWorker::default());
+        }
+        let params = &self.params;
+        let measure_run = |worker: &mut MarkerWorker, run: &[FinderTriple]| {
+            let mut measure = Measure::new(params, worker);
+            let mut found = Vec::new();
+            for triple in run {
+                found.extend(measure.measure(image, triple)?);
+            }
+            Ok(found)
+        };
+        if threads == 1 {
+            return measure_run(&mut self.workers[0], triples);
+        }
+        let run_length = triples.len().div_ceil(threads);
+        let runs: Vec<Result<Vec<HpCodeMarker>>> = std::thread::scope(|s| {
+            let handles: Vec<_> = self
+                .workers
+                .iter_mut()
+                .zip(triples.chunks(run_length))
+                .map(|(worker, run)| s.spawn(move || measure_run(worker, run)))
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| {
+                    h.join().unwrap_or_else(|_| {
+                        Err(Error::PatternNotFound(
+                            "internal: a marker-measuring thread panicked".into(),
+                        ))
+                    })
+                })
+                .collect()
+        });
+        let mut markers = Vec::with_capacity(triples.len());
+        for run in runs {
+            markers.extend(run?);
+        }
+        Ok(markers)
+    }
+}
+
+impl Measure<'_> {
     /// Whether a window of `size` around the marker of `triple` gets the radial Hann
     /// apodisation: only when it reaches beyond the marker (the setting wins).
     fn apodize(&self, triple: &FinderTriple, size: usize) -> bool {
@@ -580,7 +660,7 @@ impl HpCodeDetector {
         }
         if let Some(hann_center) = hann_center {
             if self.hann.0 != size || self.hann.1 != hann_center {
-                self.hann = (size, hann_center, hann_window(size, hann_center));
+                *self.hann = (size, hann_center, hann_window(size, hann_center));
             }
             for (v, w) in pixels.iter_mut().zip(&self.hann.2) {
                 *v *= w;

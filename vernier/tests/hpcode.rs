@@ -131,6 +131,25 @@ fn synthetic_scenes_every_marker_found_with_its_id_and_pose() {
 }
 
 #[test]
+fn thread_count_never_changes_the_result() {
+    // Five markers: runs of triples on 1, 2 and 3 threads give the sequential result exactly.
+    let mut rng = SmallRng::seed_from_u64(77);
+    let (image, truth) = random_scene(&mut rng, 5, 33, (900, 700));
+    let detect = |threads: usize| {
+        let mut params = HpCodeParams::new(PERIOD, 33);
+        params.threads = threads;
+        HpCodeDetector::new(params).unwrap().detect(&image).unwrap()
+    };
+    let sequential = detect(1);
+    assert_eq!(sequential.len(), truth.len());
+    // Every field, floats bit for bit (Debug prints them exactly).
+    let text = |m: &[HpCodeMarker]| format!("{m:?}");
+    for threads in [2, 3, 0] {
+        assert_eq!(text(&detect(threads)), text(&sequential), "{threads} threads");
+    }
+}
+
+#[test]
 fn duplicate_ids_are_all_reported_and_flagged() {
     let layout = HpCodeLayout::from_code_size(PERIOD, 33)
         .unwrap()

@@ -27,8 +27,13 @@ with AnyReader([Path(sys.argv[1])]) as reader:
             # The project's own type: decoded with the schema the file carries.
             msg = reader.deserialize(raw, connection.msgtype)
         else:
-            # Standard types: decoded with the upstream definitions, not the file's schema.
+            # Standard types: decoded with the upstream definitions, not the file's schema,
+            # and encoded again by rosbags: byte for byte what vernier wrote.
             msg = decode(STANDARD, raw, connection.msgtype)
+            again = bytes(STANDARD.serialize_cdr(msg, connection.msgtype))
+            if again != bytes(raw):
+                sys.exit(f'{connection.topic}: {connection.msgtype} is not byte-exact CDR '
+                         f'({len(again)} bytes from rosbags, {len(raw)} written)')
         out = {'topic': connection.topic, 'type': connection.msgtype, 'time': timestamp,
                'sec': msg.header.stamp.sec, 'nanosec': msg.header.stamp.nanosec,
                'frame_id': msg.header.frame_id}
