@@ -38,12 +38,15 @@ fn modified_seconds(path: &Path) -> Option<f64> {
 /// Detects markers in every image, in order; each image is frame `i` of the series. Returns
 /// the number of images that failed (each reported on stderr, and as a row with `error`).
 /// With `rerun`, every readable image and its result are also logged there. Images above
-/// `limits` are failures (decoded only after their header passed).
+/// `limits` are failures (decoded only after their header passed). With `track`
+/// (`Some(reacquire_every)`), the images are one stream and markers are tracked
+/// ([`Detector::detect_next`]).
 pub fn detect_files(
     detector: &mut Detector,
     images: &[PathBuf],
     limits: &DecodeLimits,
     format: TableFormat,
+    track: Option<usize>,
     mut rerun: Option<&mut RerunLog>,
 ) -> Result<usize, String> {
     let stdout = std::io::stdout().lock();
@@ -54,10 +57,13 @@ pub fn detect_files(
     for (frame, path) in images.iter().enumerate() {
         let start = Instant::now();
         let image = GreyImage::open_with_limits(path, limits).map_err(|e| e.to_string());
-        let result = image
-            .as_ref()
-            .map_err(Clone::clone)
-            .and_then(|image| detector.detect(image).map_err(|e| e.to_string()));
+        let result = image.as_ref().map_err(Clone::clone).and_then(|image| {
+            match track {
+                Some(every) => detector.detect_next(image, every),
+                None => detector.detect(image),
+            }
+            .map_err(|e| e.to_string())
+        });
         let time_ms = start.elapsed().as_secs_f64() * 1e3;
         if let (Some(log), Ok(image)) = (rerun.as_deref_mut(), &image) {
             log.log_frame(&FrameLog {

@@ -95,6 +95,12 @@ struct DetectArgs {
     /// JSON as `pose_3d_cue_strength`.
     #[arg(long = "pose-3d")]
     pose_3d: bool,
+    /// Treat the images as one sequence, in order, and track the markers from frame to frame
+    /// (HP codes: the finder search runs on the first frame, on loss and every N frames;
+    /// same poses as without it while markers move less than half a period per frame).
+    /// N = 30 by default; `--track 0` searches only on loss.
+    #[arg(long, value_name = "N", num_args = 0..=1, default_missing_value = "30")]
+    track: Option<usize>,
     /// Dot polarity: `auto` (default: found per marker for HP codes and stamps, bright for
     /// periodic and Megarena), `bright` dots on a dark background or `dark` dots on a bright one.
     #[arg(long, default_value = "auto")]
@@ -249,8 +255,14 @@ fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
         None => None,
     };
     let limits = vernier::DecodeLimits::with_max_pixels(args.max_pixels);
-    let failures =
-        batch::detect_files(&mut detector, &images, &limits, args.format, rerun.as_mut())?;
+    let failures = batch::detect_files(
+        &mut detector,
+        &images,
+        &limits,
+        args.format,
+        args.track,
+        rerun.as_mut(),
+    )?;
     if let Some(rerun) = rerun {
         rerun.finish()?;
     }

@@ -160,3 +160,38 @@ fn detect_rejects_empty_folder_and_plot_empty_table() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("no pose to plot"));
 }
+
+#[test]
+fn tracked_sequence_gives_the_same_poses() {
+    // The real repeatability sequence, in order: `--track` (finder search on the first frame
+    // only here) prints the poses of the full search.
+    let dir = common::data_dir().join("hpcode");
+    let images: Vec<String> = (96..=105)
+        .map(|n| {
+            dir.join(format!("Image{n}.png"))
+                .to_string_lossy()
+                .into_owned()
+        })
+        .collect();
+    let run = |extra: &[&str]| {
+        let mut args = vec![
+            "detect",
+            "--type",
+            "hpcode",
+            "--period",
+            "15.5",
+            "--code-size",
+            "33",
+        ];
+        args.extend(extra);
+        args.extend(["--format", "csv"]);
+        args.extend(images.iter().map(String::as_str));
+        String::from_utf8_lossy(&vernier(&args).stdout).into_owned()
+    };
+    let (full, tracked) = (run(&[]), run(&["--track", "0"]));
+    for name in ["x", "y", "alpha", "pixel_size", "id"] {
+        let (a, b) = (column(&full, name), column(&tracked, name));
+        assert_eq!(a.len(), 20, "{name}: {full}");
+        assert_eq!(a, b, "{name}");
+    }
+}

@@ -393,6 +393,25 @@ pub fn specs() -> Vec<ParamSpec> {
              their covariance (Megarena only; other marker types ignore it and publish \
              planar poses, pitch and roll variances 1e6).",
         ),
+        spec(
+            "tracking",
+            V::Boolean(true),
+            "Track markers from frame to frame (HP codes): the finder search runs on the first \
+             frame, when a marker is lost or its ID changes, and every reacquire_every frames; \
+             in between each marker is measured again from its predicted position. Same poses \
+             as full detection while markers move less than half a period per frame beyond \
+             the prediction; new markers appear at the next search.",
+        ),
+        ParamSpec {
+            unit: "frames",
+            range: range(0.0, 1e6, false),
+            ..spec(
+                "reacquire_every",
+                V::Integer(30),
+                "With tracking, run the full search every this many frames (new markers are \
+                 found then); 0 = only when a marker is lost.",
+            )
+        },
         ParamSpec {
             read_only: true,
             ..spec(
@@ -466,6 +485,9 @@ pub struct NodeParams {
     pub compressed_input: bool,
     /// Most publishers kept for IDs not listed in `marker_ids`.
     pub max_marker_publishers: usize,
+    /// `tracking`: `Some(reacquire_every)` tracks markers from frame to frame
+    /// ([`vernier::Detector::detect_next`]); `None` searches every frame.
+    pub tracking: Option<usize>,
     /// `use_sim_time`: the node's own stamps (diagnostics) follow `/clock`.
     pub use_sim_time: bool,
     /// `qos_overrides.<topic>.subscription.<policy>` values given at start-up, validated.
@@ -704,6 +726,18 @@ impl NodeParams {
                 ))
             }
         };
+        let tracking = match get("tracking") {
+            ParamValue::Boolean(b) => b,
+            other => return Err(format!("`tracking` must be a bool, got {other:?}")),
+        };
+        let reacquire_every = match integer("reacquire_every")? {
+            v @ 0..=1_000_000 => v as usize,
+            v => {
+                return Err(format!(
+                    "`reacquire_every` must be in 0..=1000000 frames, got {v}"
+                ))
+            }
+        };
         let max_image_pixels = u64::try_from(integer("max_image_pixels")?)
             .map_err(|_| "`max_image_pixels` must be ≥ 1 pixel".to_string())
             .and_then(|v| limits::check_max_pixels(v).map_err(|e| e.to_string()))?;
@@ -736,6 +770,11 @@ impl NodeParams {
             max_image_pixels,
             compressed_input,
             max_marker_publishers,
+            tracking: if tracking {
+                Some(reacquire_every)
+            } else {
+                None
+            },
             use_sim_time: false,
             qos_overrides: Vec::new(),
         };

@@ -175,7 +175,10 @@ impl Processor {
     }
 
     fn process_grey(&mut self, header: &Header, grey: GreyImage) -> (FrameOutput, GreyImage) {
-        let found = self.detector.detect(&grey);
+        let found = match self.params.tracking {
+            Some(every) => self.detector.detect_next(&grey, every),
+            None => self.detector.detect(&grey),
+        };
         let (mut markers, detect_error) = match found {
             Ok(markers) => (markers, None),
             Err(e) => (Vec::new(), Some(e.to_string())),

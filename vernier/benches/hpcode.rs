@@ -5,7 +5,8 @@
 //! 1024×1024 crop of it holding both markers, for the default settings (window inside each
 //! marker, refined planes) and for the original's 512-px window, plus the cost of the finder
 //! search alone and the rest per marker (grouping, window, phase engine — once or twice, see
-//! `HpCodeDetector` —, ID), with the markers measured on one thread and on every core.
+//! `HpCodeDetector` —, ID), with the markers measured on one thread and on every core, and
+//! in tracking mode (`HpCodeDetector::track`: no finder search, as between reacquisitions).
 //! Reference: the original C++ takes 94 ms (full frame) and 61 ms (crop) on the
 //! project's 2-core machine (W 33, window 512). Images come from `$VERNIER_DATA_DIR`, else
 //! `../shared/data`.
@@ -104,6 +105,24 @@ fn main() {
                 original_ms / total_ms,
                 markers
             );
+            if size.is_none() && threads == 0 {
+                // Tracking: the markers measured again from their last positions, no search.
+                let previous = detector.detect(image).unwrap_or_default();
+                let predicted: Vec<_> = previous.iter().map(|m| m.origin_px).collect();
+                let tracked_ms = time(runs, || {
+                    std::hint::black_box(detector.track(image, &previous, &predicted).ok());
+                });
+                println!(
+                    "{:<22} {:>10} {:>14.2} {:>10.2} {:>12.0} {:>8.1}x {:>8}",
+                    format!("{name} / tracking"),
+                    "-",
+                    tracked_ms / previous.len().max(1) as f64,
+                    tracked_ms,
+                    original_ms,
+                    original_ms / tracked_ms,
+                    previous.len()
+                );
+            }
         }
     }
 }

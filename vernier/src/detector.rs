@@ -316,6 +316,29 @@ impl DetectorConfig {
 /// A detector of any marker type. Keeps FFT plans and buffers between frames.
 pub struct Detector {
     inner: Inner,
+    /// Frame-to-frame state of [`Detector::detect_next`].
+    track: TrackState,
+}
+
+/// What tracking keeps between frames (HP codes: the last two frames' markers).
+#[derive(Default)]
+struct TrackState {
+    last: Vec<HpCodeMarker>,
+    before: Vec<HpCodeMarker>,
+    /// Frames tracked since the last full detection.
+    since_full: usize,
+    /// Frames of the stream found by tracking / by full detection (for diagnostics).
+    tracked_frames: u64,
+    full_frames: u64,
+}
+
+/// How a stream's frames were processed by [`Detector::detect_next`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct TrackingCounts {
+    /// Frames whose markers were found again from their last positions.
+    pub tracked: u64,
+    /// Frames that ran the full search (first frame, loss, reacquisition, other types).
+    pub full: u64,
 }
 
 enum Inner {
@@ -334,7 +357,68 @@ impl Detector {
             DetectorConfig::Stamp(p) => Inner::Stamp(Box::new(StampDetector::new(p)?)),
             DetectorConfig::HpCode(p) => Inner::HpCode(Box::new(HpCodeDetector::new(p)?)),
         };
-        Ok(Detector { inner })
+        Ok(Detector {
+            inner,
+            track: TrackState::default(),
+        })
+    }
+
+    /// Detects the markers of the next frame of a stream (servo loops, recordings), tracking
+    /// them from frame to frame (docs/design.md#tracking): for HP codes the finder search
+    /// runs only on the first frame, when a marker is lost or its ID changes, and every
+    /// `reacquire_every` frames (new markers appear then; 0 = only on loss); in between each
+    /// marker is measured again from its predicted position (constant velocity). The poses are
+    /// those of [`Detector::detect`] while markers move less than half a period per frame
+    /// beyond the prediction. Other marker types run [`Detector::detect`] on every frame
+    /// (periodic and Megarena have no search to skip).
+    pub fn detect_next(
+        &mut self,
+        image: &GreyImage,
+        reacquire_every: usize,
+    ) -> Result<Vec<MarkerPose>> {
+        let Inner::HpCode(d) = &mut self.inner else {
+            self.track.full_frames += 1;
+            return self.detect(image);
+        };
+        let t = &mut self.track;
+        let due = reacquire_every > 0 && t.since_full + 1 >= reacquire_every;
+        let mut tracked = None;
+        if !t.last.is_empty() && !due {
+            let predicted: Vec<Vector2<f64>> = t
+                .last
+                .iter()
+                .enumerate()
+                .map(|(i, m)| match t.before.get(i) {
+                    Some(b) if b.id == m.id => 2.0 * m.origin_px - b.origin_px,
+                    _ => m.origin_px,
+                })
+                .collect();
+            tracked = d.track(image, &t.last, &predicted)?;
+        }
+        let found = match tracked {
+            Some(found) => {
+                t.since_full += 1;
+                t.tracked_frames += 1;
+                found
+            }
+            None => {
+                t.since_full = 0;
+                t.full_frames += 1;
+                d.detect(image)?
+            }
+        };
+        t.before = std::mem::replace(&mut t.last, found);
+        let mut markers: Vec<MarkerPose> = t.last.iter().map(MarkerPose::from).collect();
+        flag_duplicate_ids(&mut markers);
+        Ok(markers)
+    }
+
+    /// How the frames given to [`Detector::detect_next`] were processed so far.
+    pub fn tracking_counts(&self) -> TrackingCounts {
+        TrackingCounts {
+            tracked: self.track.tracked_frames,
+            full: self.track.full_frames,
+        }
     }
 
     /// Detects every marker in `image`. An image without any marker gives an empty list for

@@ -349,6 +349,50 @@ impl HpCodeDetector {
         Ok(markers)
     }
 
+    /// Tracking (docs/design.md#tracking): the markers of `previous` (the last frame's) found
+    /// again in `image` without the finder search, each from its last finder triple moved to
+    /// `predicted[i]` (its predicted centre, image pixels). The fine step then runs exactly as
+    /// in [`HpCodeDetector::detect`], whose final window depends only on the fine geometry, so
+    /// the poses are those of full detection while each marker moves less than half a period
+    /// from its prediction. `None` when any marker is not found again with the same ID: the
+    /// caller then runs the full detection.
+    pub fn track(
+        &mut self,
+        image: &GreyImage,
+        previous: &[HpCodeMarker],
+        predicted: &[Vector2<f64>],
+    ) -> Result<Option<Vec<HpCodeMarker>>> {
+        if previous.is_empty() || previous.len() != predicted.len() {
+            return Ok(None);
+        }
+        let triples: Vec<FinderTriple> = previous
+            .iter()
+            .zip(predicted)
+            .map(|(m, &to)| {
+                // `finders` is after mirror resolution; measure() resolves it again.
+                let t = if m.mirrored {
+                    m.finders.mirrored()
+                } else {
+                    m.finders
+                };
+                let shift = to - t.center();
+                FinderTriple {
+                    corner: t.corner + shift,
+                    right: t.right + shift,
+                    bottom: t.bottom + shift,
+                    ..t
+                }
+            })
+            .collect();
+        let found = self.measure_all(image, &triples)?;
+        let same = found.len() == previous.len()
+            && found
+                .iter()
+                .zip(previous)
+                .all(|(a, b)| a.id == b.id && a.mirrored == b.mirrored);
+        Ok(same.then_some(found))
+    }
+
     /// The markers of `triples`, in their order: contiguous runs of triples measured on
     /// separate threads (each with its own engine), joined in order, so that the result is
     /// the sequential one whatever the thread count.

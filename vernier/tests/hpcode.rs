@@ -12,7 +12,7 @@ use vernier::hpcode::{HpCodeDetector, HpCodeMarker, HpCodeParams};
 use vernier::layout::{HpCodeLayout, Layout};
 use vernier::phase::wrap_to_pi;
 use vernier::render::{render_scene, RenderOptions};
-use vernier::{Detector, GreyImage, Polarity, Pose};
+use vernier::{Detector, GreyImage, MarkerPose, Polarity, Pose};
 
 /// Physical period of every synthetic marker, µm.
 const PERIOD: f64 = 10.0;
@@ -145,7 +145,11 @@ fn thread_count_never_changes_the_result() {
     // Every field, floats bit for bit (Debug prints them exactly).
     let text = |m: &[HpCodeMarker]| format!("{m:?}");
     for threads in [2, 3, 0] {
-        assert_eq!(text(&detect(threads)), text(&sequential), "{threads} threads");
+        assert_eq!(
+            text(&detect(threads)),
+            text(&sequential),
+            "{threads} threads"
+        );
     }
 }
 
@@ -292,6 +296,115 @@ fn real_images_96_to_105_match_the_original() {
     // Refined planes differ from the original's band-pass planes on these real images by up to
     // ~1 µm and ~1.5e-3 rad (the original's own result moves that much with its window size).
     assert!(dev_xy < 1.5 && dev_alpha < 2.5e-3 && dev_ps < 2e-3);
+}
+
+/// Largest difference in image position (px) and yaw (rad) between two marker lists matched
+/// by ID.
+fn worst_difference(a: &[MarkerPose], b: &[MarkerPose]) -> (f64, f64) {
+    assert_eq!(a.len(), b.len(), "{a:#?}\n{b:#?}");
+    let (mut px, mut rad) = (0.0f64, 0.0f64);
+    for m in a {
+        let n = b.iter().find(|n| n.id == m.id).expect("same IDs");
+        px = px.max((m.origin_px - n.origin_px).norm());
+        rad = rad.max(wrap_to_pi(m.pose.alpha - n.pose.alpha).abs());
+    }
+    (px, rad)
+}
+
+fn hp_detector() -> Detector {
+    let settings = DetectorSettings {
+        pattern_type: MarkerKind::HpCode,
+        period: Some(PERIOD),
+        code_size: Some(33),
+        ..Default::default()
+    };
+    Detector::new(settings.to_config().unwrap()).unwrap()
+}
+
+#[test]
+fn tracking_gives_the_full_detection_on_a_moving_sequence() {
+    // Two markers drifting 0.9 px and 2e-3 rad per frame (one of them accelerating), 24
+    // frames, full search every 10 frames: every frame equals full detection.
+    let layouts = [17u64, 200].map(|id| {
+        HpCodeLayout::from_code_size(PERIOD, 33)
+            .unwrap()
+            .with_id(id)
+            .unwrap()
+    });
+    let mut opts = RenderOptions::new(640, 400);
+    opts.blur_sigma = 0.6;
+    opts.noise_std = 0.01;
+    let (mut tracker, mut full) = (hp_detector(), hp_detector());
+    let (mut worst_px, mut worst_rad) = (0.0f64, 0.0f64);
+    for frame in 0..24 {
+        let t = frame as f64;
+        let poses = [
+            Pose::from_origin_in_image(Vector2::new(-150.0 + 0.9 * t, 5.0), 0.4 + 2e-3 * t, 1.1),
+            Pose::from_origin_in_image(
+                Vector2::new(140.0, -10.0 + 0.02 * t * t),
+                -1.9 - 2e-3 * t,
+                1.1,
+            ),
+        ];
+        let items: Vec<(&dyn Layout, Pose)> = layouts
+            .iter()
+            .zip(&poses)
+            .map(|(l, p)| (l as &dyn Layout, *p))
+            .collect();
+        opts.seed = frame;
+        let image = render_scene(&items, &opts).unwrap();
+        let tracked = tracker.detect_next(&image, 10).unwrap();
+        let expected = full.detect(&image).unwrap();
+        assert_eq!(expected.len(), 2, "frame {frame}");
+        let (px, rad) = worst_difference(&tracked, &expected);
+        worst_px = worst_px.max(px);
+        worst_rad = worst_rad.max(rad);
+    }
+    let counts = tracker.tracking_counts();
+    println!(
+        "tracked {} frames, full {}: worst {worst_px:.1e} px, {worst_rad:.1e} rad",
+        counts.tracked, counts.full
+    );
+    assert_eq!((counts.tracked, counts.full), (21, 3));
+    assert!(
+        worst_px < 1e-6 && worst_rad < 1e-8,
+        "{worst_px} px, {worst_rad} rad"
+    );
+}
+
+#[test]
+fn tracking_gives_the_full_detection_on_the_real_sequence() {
+    let (mut tracker, mut full) = (hp_detector_real(), hp_detector_real());
+    let (mut worst_px, mut worst_rad) = (0.0f64, 0.0f64);
+    for number in 96..=105 {
+        let image = open_hp(&format!("Image{number}.png"));
+        let tracked = tracker.detect_next(&image, 0).unwrap();
+        let expected = full.detect(&image).unwrap();
+        assert_eq!(expected.len(), 2, "Image{number}");
+        let (px, rad) = worst_difference(&tracked, &expected);
+        worst_px = worst_px.max(px);
+        worst_rad = worst_rad.max(rad);
+    }
+    let counts = tracker.tracking_counts();
+    println!(
+        "real sequence: tracked {} of 10 frames: worst {worst_px:.1e} px, {worst_rad:.1e} rad",
+        counts.tracked
+    );
+    assert_eq!(counts.tracked, 9);
+    assert!(
+        worst_px < 1e-6 && worst_rad < 1e-8,
+        "{worst_px} px, {worst_rad} rad"
+    );
+}
+
+fn hp_detector_real() -> Detector {
+    let settings = DetectorSettings {
+        pattern_type: MarkerKind::HpCode,
+        period: Some(15.5),
+        code_size: Some(33),
+        ..Default::default()
+    };
+    Detector::new(settings.to_config().unwrap()).unwrap()
 }
 
 #[test]
