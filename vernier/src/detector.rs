@@ -43,11 +43,18 @@ pub struct MarkerPose {
 impl MarkerPose {
     /// 6×6 covariance of `(x, y, z, roll, pitch, yaw)` of the camera-frame pose `cTp` (the
     /// translation of [`Pose::camera_from_pattern`], as published by the node), in **pattern
-    /// units and radians**, estimated from the phase-fit noise. Along the pattern axes the
-    /// position errors are `σ_x = P·σ_c1/2π` and `σ_y = P·σ_c2/2π`; the pattern axes are turned
-    /// by `alpha` in the camera frame, so the position block is `Rz(α)·diag(σ_x², σ_y²)·Rz(α)ᵀ`.
-    /// Yaw from the plane slopes over `window_px` pixels. Unobserved axes (z, roll, pitch for
-    /// planar poses) get a variance of `1e6` (large, per ROS convention for "unknown").
+    /// units and radians**, estimated from the white-noise level of the phase fit
+    /// (docs/design.md#uncertainty). Along the pattern axes the position errors are
+    /// `σ_x = P·σ_c1/2π` and `σ_y = P·σ_c2/2π`; the pattern axes are turned by `alpha` in the
+    /// camera frame, so the position block is `Rz(α)·diag(σ_x², σ_y²)·Rz(α)ᵀ`.
+    /// Yaw from the plane slopes over the analysed `window_px` pixels:
+    /// `σ_α = κ·σ_c1/(k·window_px)`, `k` the grid frequency in rad/px, `κ` the slope factor of
+    /// the fit (docs/design.md#uncertainty): 4.85 for periodic grids (alpha from plane 1, fitted
+    /// under the engine's sine-cubed window; `decode_confidence` is `None` for them only), √12
+    /// for the decoded types (HP codes and stamps average both planes' directions under that
+    /// window, 4.85/√2 = 3.43; Megarena fits its planes uniformly over the dots and takes one,
+    /// √12 = 3.46). Unobserved axes (z, roll, pitch for planar poses) get a variance of `1e6`
+    /// (large, per ROS convention for "unknown").
     ///
     /// With out-of-plane angles ([`MarkerPose::pose_3d_cue_strength`] set), `cTp`'s rotation
     /// `Rz(α)·Ry(β)·Rx(γ)` is roll `γ`, pitch `β`, yaw `α`, and the roll/pitch block is the
@@ -69,10 +76,17 @@ impl MarkerPose {
         cov[2][2] = 1e6;
         cov[3][3] = 1e6;
         cov[4][4] = 1e6;
-        // Slope error ≈ phase error spread over the window: σ_α ≈ σ_c·√12 / (k·window).
+        // Slope error ≈ phase error spread over the window: σ_α ≈ κ·σ_c / (k·window), κ =
+        // √(L²·Σw²x²·(Σw)²/((Σwx²)²·Σw²)) per axis: √12 for a flat fit, 4.83–4.88 for the
+        // sine-cubed window over 64–1024 px (checked on renders: tests/efficiency.rs).
+        const SINE_CUBED_SLOPE_FACTOR: f64 = 4.85;
+        let kappa = match self.decode_confidence {
+            None => SINE_CUBED_SLOPE_FACTOR,
+            Some(_) => 12f64.sqrt(),
+        };
         let k = std::f64::consts::TAU * self.pose.pixel_size / period;
         let s_alpha = if k > 0.0 && window_px > 0.0 {
-            self.phase_std[0] * 12f64.sqrt() / (k * window_px)
+            self.phase_std[0] * kappa / (k * window_px)
         } else {
             f64::INFINITY
         };

@@ -17,6 +17,7 @@ mod bandpass;
 pub(crate) mod fft_size;
 pub mod inspect;
 mod lobes;
+mod noise;
 pub mod plane;
 mod refine;
 mod spectrum;
@@ -30,6 +31,7 @@ use crate::error::{Error, Result};
 use crate::grey_image::GreyImage;
 use crate::lru::Lru;
 use bandpass::BandpassPlan;
+use noise::NoisePlan;
 use refine::RefinePlan;
 use spectrum::SpectrumPlan;
 
@@ -168,8 +170,8 @@ pub struct PhaseAnalysis {
     pub lobes: [Lobe; 2],
     /// Amplitude `A` of each fundamental cosine `A·cos φ`, intensity units.
     pub amplitudes: [f64; 2],
-    /// Estimated standard deviation of each plane's offset `c` from image noise, radians
-    /// (an upper bound: unmodelled harmonics count as noise).
+    /// Estimated standard deviation of each plane's offset `c` from white image noise, radians
+    /// (docs/design.md#uncertainty; at least the floor set by [`MIN_NOISE_STD`]).
     pub phase_std: [f64; 2],
     /// Fraction of the window-weighted image variance carried by the two fundamentals, `[0, 1]`.
     pub quality: f64,
@@ -193,7 +195,8 @@ pub struct Refinement {
     pub planes: [PhasePlane; 2],
     /// Amplitude `A` of each fundamental cosine, intensity units.
     pub amplitudes: [f64; 2],
-    /// Estimated standard deviation of each plane's offset `c`, radians.
+    /// Estimated standard deviation of each plane's offset `c` from white image noise, radians
+    /// (docs/design.md#uncertainty).
     pub phase_std: [f64; 2],
     /// Fraction of the weighted image variance carried by the two fundamentals, `[0, 1]`.
     pub quality: f64,
@@ -201,14 +204,29 @@ pub struct Refinement {
     pub iterations: usize,
 }
 
-impl From<&refine::Refined> for Refinement {
-    fn from(r: &refine::Refined) -> Self {
+/// Floor of the white-noise standard deviation behind [`Refinement::phase_std`], fraction of
+/// full scale: the quantisation noise of a 16-bit image, `1/(65535·√12)` ≈ 4.4e-6, the finest
+/// input the library reads. A noise-free render then reports a tiny but positive uncertainty
+/// instead of 0 (a singular covariance breaks filters that invert it). It does not cover the
+/// model error of noise-free images (up to ~7e-4 px on sharp, aliased dots,
+/// docs/design.md#accuracy).
+pub const MIN_NOISE_STD: f64 = 1.0 / (65535.0 * 3.464_101_615_137_754_6);
+
+impl Refinement {
+    /// Quality figures of a fit. `white_noise` is the robust noise variance of the image
+    /// ([`noise`], docs/design.md#uncertainty); the fit residual, which also counts the dots'
+    /// harmonics and anything else the two cosines do not model, is an upper bound of it and is
+    /// used when the estimate is missing or larger. Neither changes the planes.
+    fn from_fit(r: &refine::Refined, white_noise: Option<f64>) -> Self {
         // Each fundamental A·cos carries A²/2 of the variance; the offset's noise follows from
-        // the residual: var(c) = 2σ²/(A²·N_eff).
+        // the white-noise variance σ²: var(c) = 2σ²/(A²·N_eff).
         let explained = (r.amplitudes[0].powi(2) + r.amplitudes[1].powi(2)) / 2.0;
+        let variance = white_noise
+            .map_or(r.residual, |v| v.min(r.residual))
+            .max(MIN_NOISE_STD * MIN_NOISE_STD);
         let std = |amp: f64| {
             if amp > 0.0 && r.effective_pixels > 0.0 {
-                (2.0 * r.residual / (amp * amp * r.effective_pixels)).sqrt()
+                (2.0 * variance / (amp * amp * r.effective_pixels)).sqrt()
             } else {
                 f64::INFINITY
             }
@@ -236,6 +254,7 @@ struct SizeCache {
     spectrum: Option<SpectrumPlan>,
     bandpass: Option<BandpassPlan>,
     refine: Option<RefinePlan>,
+    noise: Option<NoisePlan>,
     /// 2×2-binned copy of the image for the coarse stage.
     binned: Vec<f32>,
 }
@@ -281,6 +300,10 @@ impl SizeCache {
         let (rows, cols) = (self.rows, self.cols);
         self.refine
             .get_or_insert_with(|| RefinePlan::new(rows, cols))
+    }
+    fn noise(&mut self) -> &mut NoisePlan {
+        let (rows, cols) = (self.rows, self.cols);
+        self.noise.get_or_insert_with(|| NoisePlan::new(rows, cols))
     }
 }
 
@@ -372,6 +395,7 @@ impl PhaseEngine {
             spectrum: None,
             bandpass: None,
             refine: None,
+            noise: None,
             binned: Vec::new(),
         });
         (cache, &mut self.planners)
@@ -429,7 +453,8 @@ impl PhaseEngine {
                 cache.refine(),
                 params.refine_iterations,
             );
-            Refinement::from(&r)
+            let noise = noise::white_noise_variance(image.pixels(), None, &r.planes, cache.noise());
+            Refinement::from_fit(&r, noise)
         } else {
             Refinement {
                 planes: coarse.planes,
@@ -500,7 +525,9 @@ impl PhaseEngine {
                 "all refinement weights are zero".into(),
             ));
         }
-        Ok(Refinement::from(&r))
+        let noise =
+            noise::white_noise_variance(image.pixels(), Some(weights), &r.planes, cache.noise());
+        Ok(Refinement::from_fit(&r, noise))
     }
 
     /// Spectral stage on the 2×2-binned image, plus one refinement step there; planes returned
