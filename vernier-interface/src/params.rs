@@ -310,7 +310,7 @@ pub fn specs() -> Vec<ParamSpec> {
                 "window_size",
                 V::Integer(0),
                 "Side of the square window analysed around each marker (HP code, stamp); \
-                 0 = automatic. Also the window over which the yaw covariance is estimated.",
+                 0 = automatic (inside each marker).",
             )
         },
         spec(

@@ -186,18 +186,7 @@ impl Processor {
         let params = &self.params;
         markers.retain(|m| params.tracks(m.id) && m.quality >= params.min_quality);
         vernier::detector::flag_duplicate_ids(&mut markers);
-        let window_px = params
-            .settings
-            .window_size
-            .unwrap_or(grey.width().min(grey.height())) as f64;
-        let output = build_output(
-            header,
-            markers,
-            detect_error,
-            params,
-            self.config.period(),
-            window_px,
-        );
+        let output = build_output(header, markers, detect_error, params, self.config.period());
         (output, grey)
     }
 }
@@ -209,7 +198,6 @@ pub fn build_output(
     detect_error: Option<String>,
     params: &NodeParams,
     period: f64,
-    window_px: f64,
 ) -> FrameOutput {
     let scale = params.metres_per_unit;
     let frame_id = if !params.camera_frame.is_empty() {
@@ -247,7 +235,8 @@ pub fn build_output(
         let pose = Pose::from_isometry(&camera_from_marker);
         let with_covariance = PoseWithCovariance {
             pose,
-            covariance: si.covariance(period * scale, window_px).into(),
+            // Over the window the marker's planes were fitted on.
+            covariance: si.covariance(period * scale, m.window_px as f64).into(),
         };
         let marker_frame = format!("{}{}", params.marker_frame_prefix, m.id);
         out.markers.markers.push(MarkerMsg {
@@ -260,7 +249,7 @@ pub fn build_output(
             decode_confidence: m.decode_confidence.unwrap_or(-1.0),
         });
         // The analysed window, flat: what the measurement covers on the part.
-        let side = window_px * si.pose.pixel_size;
+        let side = m.window_px as f64 * si.pose.pixel_size;
         out.detections.detections.push(Detection3D {
             header: header.clone(),
             results: vec![ObjectHypothesisWithPose {
@@ -767,6 +756,7 @@ mod tests {
             duplicate_id: false,
             decode_confidence: None,
             pose_3d_cue_strength: None,
+            window_px: 256,
         };
         let a = vernier::Pose::planar(10.0, 20.0, 0.5, 1.0);
         let b = vernier::Pose::from_origin_in_image(
@@ -780,7 +770,6 @@ mod tests {
             None,
             &p,
             8.0,
-            256.0,
         );
         assert_eq!(out.relative.len(), 1, "pair 3:4 has no marker 4");
         let ((ia, ib), rel) = &out.relative[0];

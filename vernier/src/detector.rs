@@ -38,6 +38,10 @@ pub struct MarkerPose {
     /// when the image shows no perspective and the sign of both angles is a guess). `None` for
     /// planar poses.
     pub pose_3d_cue_strength: Option<f64>,
+    /// Shorter side of the image the phase planes were fitted on, pixels: the marker's
+    /// analysis window (HP codes, stamps) or the whole image (periodic, Megarena). The
+    /// `window_px` to give [`MarkerPose::covariance`].
+    pub window_px: usize,
 }
 
 impl MarkerPose {
@@ -472,6 +476,7 @@ impl From<&PeriodicDetection> for MarkerPose {
             duplicate_id: false,
             decode_confidence: None,
             pose_3d_cue_strength: None,
+            window_px: found.analysis.size.0.min(found.analysis.size.1),
         }
     }
 }
@@ -493,6 +498,7 @@ impl From<&MegarenaDetection> for MarkerPose {
             duplicate_id: false,
             decode_confidence: Some(found.decode_confidence),
             pose_3d_cue_strength,
+            window_px: found.analysis.size.0.min(found.analysis.size.1),
         }
     }
 }
@@ -508,6 +514,7 @@ impl From<&StampDetection> for MarkerPose {
             duplicate_id: false,
             decode_confidence: Some(found.decode_confidence),
             pose_3d_cue_strength: None,
+            window_px: found.analysis.size.0.min(found.analysis.size.1),
         }
     }
 }
@@ -523,6 +530,7 @@ impl From<&HpCodeMarker> for MarkerPose {
             duplicate_id: false,
             decode_confidence: Some(found.id_confidence),
             pose_3d_cue_strength: None,
+            window_px: found.analysis.size.0.min(found.analysis.size.1),
         }
     }
 }
@@ -550,6 +558,7 @@ mod tests {
             duplicate_id: false,
             decode_confidence: None,
             pose_3d_cue_strength: None,
+            window_px: 256,
         }
     }
 
