@@ -9,11 +9,16 @@ every result. Reports, per marker kind:
     (sent − processed − dropped);
   * node CPU time per processed frame (user + system, /proc/<pid>/stat).
 
-    test/run_bench.sh [--kind periodic|hpcode|both] [--duration 30] [--rates 30,60]
+    test/run_bench.sh [--kind periodic|hpcode|hpcode_5mp|both] [--duration 30]
+                      [--rates 30,60] [--tracking on|off|both]
 
 `--kind hpcode` runs the node with `pattern_type:=hpcode code_size:=33 marker_ids:=[37, 300]
 relative_pairs:=['37:300']` (both poses, the relative pose and /tf published per frame);
-`both` runs a fresh node per kind and prints both tables.
+`--kind hpcode_5mp` is the same on 2456×2054 frames (a 5 MP microscope camera) forming a smooth
+sequence (each marker drifts 0.4 px and turns 1 mrad per frame; the cycle's jump back to the
+first frame is a loss, found again by the full search), so that tracking can follow them.
+`both` runs a fresh node per kind (periodic, hpcode) and prints both tables. `--tracking`
+runs the node with `tracking:=true`, `false`, or a fresh node for each.
 
 Frames are serialised once and only their stamp is patched before each write, so the Python
 publisher keeps up at 60 Hz (Cyclone's own C writer sends them)."""
@@ -79,10 +84,10 @@ class Receiver(threading.Thread):
                 self.diagnostics = {kv.key: kv.value for kv in d.status[0].values}
 
 
-def run_rate(peer, receiver, node, frames, rate, seconds, expected_markers=1):
+def run_rate(peer, receiver, node, frames, rate, seconds, expected_markers=1, shape=(SIZE, SIZE)):
     payloads = []
     for data in frames:
-        msg = harness.mono8(SIZE, SIZE, data, 0)
+        msg = harness.mono8(shape[0], shape[1], data, 0)
         ser = msg.serialize(use_version_2=False)
         payloads.append(bytearray(ser.ljust((len(ser) + 3) & ~3, b"\0")))
     receiver.results.clear()
@@ -145,16 +150,32 @@ KINDS = {
         "pairs": [(37, 300)],
         "label": "2 HP codes (W 33) + relative pose",
     },
+    "hpcode_5mp": {
+        "render": ["--ids", "37,300", "--code-size", "33", "--size", "2456", "--height", "2054",
+                   "--motion", "0.4"],
+        "params": ["-p", "pattern_type:=hpcode", "-p", "period:=10.0", "-p", "code_size:=33",
+                   "-p", "marker_ids:=[37, 300]", "-p", "relative_pairs:=['37:300']"],
+        "ids": (37, 300),
+        "pairs": [(37, 300)],
+        "label": "2 HP codes (W 33) + relative pose, smooth motion",
+        "shape": (2456, 2054),
+    },
 }
 
 
-def bench_kind(kind, domain, work, args):
+def bench_kind(kind, domain, work, args, tracking):
     """Starts a node for `kind`, runs every rate, stops it; returns the table rows."""
     spec = KINDS[kind]
-    _, frames = harness.render_frames(work / kind, args.frames, SIZE, 10.0, 0.8, seed=3,
-                                      kind=kind, extra=spec["render"])
-    log = work / f"node_{kind}.log"
-    node = harness.start_node(domain, [*spec["params"], "--log-level", "error"], log)
+    shape = spec.get("shape", (SIZE, SIZE))
+    frames_dir = work / kind
+    if not (frames_dir / "truth.json").exists():
+        harness.render_frames(frames_dir, args.frames, SIZE, 10.0, 0.8, seed=3,
+                              kind=kind.split("_")[0], extra=spec["render"])
+    truth = __import__("json").loads((frames_dir / "truth.json").read_text())
+    frames = [(frames_dir / f["file"]).read_bytes() for f in truth["frames"]]
+    log = work / f"node_{kind}_{tracking}.log"
+    node = harness.start_node(
+        domain, [*spec["params"], "-p", f"tracking:={tracking}", "--log-level", "error"], log)
     peer = harness.RosPeer(domain, marker_ids=spec["ids"], relative_pairs=spec["pairs"])
     try:
         if not peer.wait_for_node():
@@ -163,8 +184,8 @@ def bench_kind(kind, domain, work, args):
         receiver.start()
         # Warm-up: FFT plans, discovery of the per-marker topics.
         markers = len(spec["ids"])
-        run_rate(peer, receiver, node, frames, 10, 2.0, markers)
-        rows = [run_rate(peer, receiver, node, frames, float(r), args.duration, markers)
+        run_rate(peer, receiver, node, frames, 10, 2.0, markers, shape)
+        rows = [run_rate(peer, receiver, node, frames, float(r), args.duration, markers, shape)
                 for r in args.rates.split(",")]
         receiver.running = False
         receiver.join(timeout=2.0)
@@ -173,9 +194,10 @@ def bench_kind(kind, domain, work, args):
     return rows
 
 
-def print_table(kind, rows, duration):
-    print(f"detector node, {SIZE}x{SIZE} mono8, {KINDS[kind]['label']}, {duration:.0f} s per "
-          f"rate, {os.cpu_count()} CPUs")
+def print_table(kind, tracking, rows, duration):
+    w, h = KINDS[kind].get("shape", (SIZE, SIZE))
+    print(f"detector node, {w}x{h} mono8, {KINDS[kind]['label']}, tracking {tracking}, "
+          f"{duration:.0f} s per rate, {os.cpu_count()} CPUs")
     print(f"{'rate Hz':>8} {'sent':>6} {'processed':>9} {'all found':>9} {'dropped':>8} "
           f"{'lost':>5} {'p50 ms':>8} {'p99 ms':>8} {'mean ms':>8} {'CPU ms/frame':>13}")
     for r in rows:
@@ -191,16 +213,21 @@ def main():
     parser.add_argument("--duration", type=float, default=30.0, help="seconds per rate")
     parser.add_argument("--rates", default="30,60", help="comma-separated Hz")
     parser.add_argument("--frames", type=int, default=8, help="distinct frames cycled")
+    parser.add_argument("--tracking", choices=["on", "off", "both"], default="on",
+                        help="the node's tracking parameter (both: a node for each)")
     args = parser.parse_args()
     domain = int(os.environ.get("ROS_DOMAIN_ID", random.randint(1, 200)))
     work = Path(tempfile.mkdtemp(prefix="vernier_bench_"))
-    kinds = list(KINDS) if args.kind == "both" else [args.kind]
+    kinds = ["periodic", "hpcode"] if args.kind == "both" else [args.kind]
+    modes = {"on": ["true"], "off": ["false"], "both": ["true", "false"]}[args.tracking]
     tables = []
-    for n, kind in enumerate(kinds):
+    runs = [(kind, mode) for kind in kinds for mode in modes]
+    for n, (kind, mode) in enumerate(runs):
         # A domain per node: nothing of the previous node's discovery lingers.
-        tables.append((kind, bench_kind(kind, (domain + n - 1) % 200 + 1, work, args)))
-    for kind, rows in tables:
-        print_table(kind, rows, args.duration)
+        domain_n = (domain + n - 1) % 200 + 1
+        tables.append((kind, mode, bench_kind(kind, domain_n, work, args, mode)))
+    for kind, mode, rows in tables:
+        print_table(kind, mode, rows, args.duration)
     return 0
 
 

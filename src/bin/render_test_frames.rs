@@ -5,6 +5,7 @@
 //! render_test_frames --out DIR [--kind periodic|hpcode] [--count N] [--size 1024]
 //!                    [--period 10] [--pixel-size 0.8] [--seed 1]
 //!                    [--code-size 33] [--ids 37,300]          (hpcode only)
+//!                    [--height H] [--motion PX]              (hpcode only)
 //! ```
 //!
 //! `--kind periodic` (default): one periodic dot grid per frame (reported as ID 0).
@@ -12,6 +13,10 @@
 //! (`W ≡ 1 mod 4`, node parameter `code_size`), with the two distinct IDs of `--ids` (first =
 //! `a`, second = `b`), each at its own random position (fully inside the image, apart from the
 //! other) and random full-turn orientation; both share the frame's pixel size (one camera).
+//! `--height` makes the frames `size × H` (e.g. `--size 2456 --height 2054`, a 5 MP camera).
+//! `--motion PX` makes them a smooth sequence instead: after frame 0 each marker drifts `PX`
+//! pixels per frame along its own random direction (bouncing off the borders) and turns by
+//! 1 mrad per frame, as a servo loop sees it (for tracking).
 //!
 //! Writes `DIR/frame_<i>.gray` (raw row-major mono8, `size × size`) and `DIR/truth.json`:
 //! `{"kind", "size", "period", "pixel_size", "unit": "um", "frames": [{"file", "markers": [{"id",
@@ -63,6 +68,10 @@ struct Args {
     code_size: usize,
     /// HP code IDs `a`, `b`.
     ids: (u64, u64),
+    /// Image height, pixels (HP code frames; default `size`).
+    height: Option<usize>,
+    /// Drift per frame, pixels (HP code frames; 0 = independent random poses).
+    motion: f64,
 }
 
 fn parse_args() -> Result<Args, String> {
@@ -76,6 +85,8 @@ fn parse_args() -> Result<Args, String> {
         seed: 1,
         code_size: 33,
         ids: (37, 300),
+        height: None,
+        motion: 0.0,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -103,6 +114,8 @@ fn parse_args() -> Result<Args, String> {
             "--pixel-size" => args.pixel_size = number(value()?)?,
             "--seed" => args.seed = number(value()?)? as u64,
             "--code-size" => args.code_size = number(value()?)? as usize,
+            "--height" => args.height = Some(number(value()?)? as usize),
+            "--motion" => args.motion = number(value()?)?,
             "--ids" => {
                 let text = value()?;
                 let parsed: Result<Vec<u64>, _> =
@@ -223,7 +236,8 @@ fn hpcode_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
     // Bounding circle of a marker at any angle, pixels, plus a margin for the blur.
     let radius_px = layouts[0].width() / args.pixel_size / std::f64::consts::SQRT_2 + 4.0;
     let gap_px = 2.0 * args.period / args.pixel_size;
-    let size = args.size as f64;
+    let (width, height) = (args.size, args.height.unwrap_or(args.size));
+    let size = width.min(height) as f64;
     if 2.0 * radius_px >= size {
         return Err(format!(
             "a {}-cell HP code at {} px per period does not fit a {}-pixel frame",
@@ -232,21 +246,43 @@ fn hpcode_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
             args.size
         ));
     }
-    let options = render_options(args.size);
-    let center = Vector2::new((args.size / 2) as f64, (args.size / 2) as f64);
+    let mut options = render_options(width);
+    options.height = height;
+    let center = Vector2::new((width / 2) as f64, (height / 2) as f64);
+    let (lo, hi) = (
+        Vector2::new(radius_px, radius_px),
+        Vector2::new(width as f64 - radius_px, height as f64 - radius_px),
+    );
     let mut rng = SplitMix(args.seed);
     let mut frames = Vec::new();
+    // With --motion: the last frame's origins and angles, and each marker's drift direction.
+    let mut last: Option<([Vector2<f64>; 2], [f64; 2])> = None;
+    // Drawn from their own generator, so that the poses without --motion stay as they were.
+    let mut drift = SplitMix(args.seed ^ 0x5eed_d41f);
+    let mut directions =
+        [drift.range(-PI, PI), drift.range(-PI, PI)].map(|a| Vector2::new(a.cos(), a.sin()));
     for i in 0..args.count {
-        let place = |rng: &mut SplitMix| {
-            Vector2::new(
-                rng.range(radius_px, size - radius_px),
-                rng.range(radius_px, size - radius_px),
-            )
+        let place = |rng: &mut SplitMix| Vector2::new(rng.range(lo.x, hi.x), rng.range(lo.y, hi.y));
+        if let (Some((origins, angles)), true) = (last, args.motion > 0.0) {
+            let mut moved = origins;
+            for k in 0..2 {
+                let next = origins[k] + directions[k] * args.motion;
+                for axis in 0..2 {
+                    if next[axis] < lo[axis] || next[axis] > hi[axis] {
+                        directions[k][axis] = -directions[k][axis];
+                    }
+                }
+                moved[k] = origins[k] + directions[k] * args.motion;
+            }
+            let turned = [angles[0] + 1e-3, angles[1] - 1e-3];
+            last = Some((moved, turned));
+        }
+        let (first, mut second, angles) = match last {
+            Some((o, a)) if args.motion > 0.0 => (o[0], o[1], Some(a)),
+            _ => (place(&mut rng), place(&mut rng), None),
         };
-        let first = place(&mut rng);
-        let mut second = place(&mut rng);
         let mut attempts = 0;
-        while (second - first).norm() < 2.0 * radius_px + gap_px {
+        while angles.is_none() && (second - first).norm() < 2.0 * radius_px + gap_px {
             attempts += 1;
             if attempts > 10_000 {
                 return Err(format!(
@@ -256,8 +292,11 @@ fn hpcode_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
             }
             second = place(&mut rng);
         }
-        let poses = [first, second].map(|origin| {
-            Pose::from_origin_in_image(origin - center, rng.range(-PI, PI), args.pixel_size)
+        let alphas = angles.unwrap_or_else(|| [rng.range(-PI, PI), rng.range(-PI, PI)]);
+        last = Some(([first, second], alphas));
+        let poses = [0, 1].map(|k| {
+            let origin = [first, second][k];
+            Pose::from_origin_in_image(origin - center, alphas[k], args.pixel_size)
         });
         let items: Vec<(&dyn Layout, Pose)> = layouts
             .iter()
@@ -308,6 +347,7 @@ fn run(args: &Args) -> Result<(), String> {
         Kind::HpCode => serde_json::json!({
             "kind": "hpcode",
             "size": args.size,
+            "height": args.height.unwrap_or(args.size),
             "period": args.period,
             "pixel_size": args.pixel_size,
             "code_size": args.code_size,
