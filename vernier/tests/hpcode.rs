@@ -311,10 +311,11 @@ fn worst_difference(a: &[MarkerPose], b: &[MarkerPose]) -> (f64, f64) {
     (px, rad)
 }
 
-fn hp_detector() -> Detector {
+/// The generic detector for W 33 HP codes of physical period `period`.
+fn hp_detector(period: f64) -> Detector {
     let settings = DetectorSettings {
         pattern_type: MarkerKind::HpCode,
-        period: Some(PERIOD),
+        period: Some(period),
         code_size: Some(33),
         ..Default::default()
     };
@@ -334,7 +335,7 @@ fn tracking_gives_the_full_detection_on_a_moving_sequence() {
     let mut opts = RenderOptions::new(640, 400);
     opts.blur_sigma = 0.6;
     opts.noise_std = 0.01;
-    let (mut tracker, mut full) = (hp_detector(), hp_detector());
+    let (mut tracker, mut full) = (hp_detector(PERIOD), hp_detector(PERIOD));
     let (mut worst_px, mut worst_rad) = (0.0f64, 0.0f64);
     for frame in 0..24 {
         let t = frame as f64;
@@ -374,7 +375,7 @@ fn tracking_gives_the_full_detection_on_a_moving_sequence() {
 
 #[test]
 fn tracking_gives_the_full_detection_on_the_real_sequence() {
-    let (mut tracker, mut full) = (hp_detector_real(), hp_detector_real());
+    let (mut tracker, mut full) = (hp_detector(15.5), hp_detector(15.5));
     let (mut worst_px, mut worst_rad) = (0.0f64, 0.0f64);
     for number in 96..=105 {
         let image = open_hp(&format!("Image{number}.png"));
@@ -395,16 +396,6 @@ fn tracking_gives_the_full_detection_on_the_real_sequence() {
         worst_px < 1e-6 && worst_rad < 1e-8,
         "{worst_px} px, {worst_rad} rad"
     );
-}
-
-fn hp_detector_real() -> Detector {
-    let settings = DetectorSettings {
-        pattern_type: MarkerKind::HpCode,
-        period: Some(15.5),
-        code_size: Some(33),
-        ..Default::default()
-    };
-    Detector::new(settings.to_config().unwrap()).unwrap()
 }
 
 #[test]
