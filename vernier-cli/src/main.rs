@@ -96,11 +96,15 @@ struct DetectArgs {
     #[arg(long = "pose-3d")]
     pose_3d: bool,
     /// Treat the images as one sequence, in order, and track the markers from frame to frame
-    /// (HP codes: the finder search runs on the first frame, on loss and every N frames;
-    /// same poses as without it while markers move less than half a period per frame).
-    /// N = 30 by default; `--track 0` searches only on loss.
-    #[arg(long, value_name = "N", num_args = 0..=1, default_missing_value = "30")]
-    track: Option<usize>,
+    /// (HP codes: the finder search runs on the first frame, on loss and every
+    /// `--reacquire-every` frames; same poses as without it while markers move less than half
+    /// a period per frame).
+    #[arg(long)]
+    track: bool,
+    /// With `--track`, run the full search every this many frames (new markers are found
+    /// then); 0 = only when a marker is lost.
+    #[arg(long, value_name = "FRAMES", default_value_t = 30)]
+    reacquire_every: usize,
     /// Dot polarity: `auto` (default: found per marker for HP codes and stamps, bright for
     /// periodic and Megarena), `bright` dots on a dark background or `dark` dots on a bright one.
     #[arg(long, default_value = "auto")]
@@ -260,7 +264,7 @@ fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
         &images,
         &limits,
         args.format,
-        args.track,
+        args.track.then_some(args.reacquire_every),
         rerun.as_mut(),
     )?;
     if let Some(rerun) = rerun {

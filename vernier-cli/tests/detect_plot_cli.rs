@@ -188,7 +188,7 @@ fn tracked_sequence_gives_the_same_poses() {
         args.extend(images.iter().map(String::as_str));
         String::from_utf8_lossy(&vernier(&args).stdout).into_owned()
     };
-    let (full, tracked) = (run(&[]), run(&["--track", "0"]));
+    let (full, tracked) = (run(&[]), run(&["--track", "--reacquire-every", "0"]));
     for name in ["x", "y", "alpha", "pixel_size", "id"] {
         let (a, b) = (column(&full, name), column(&tracked, name));
         assert_eq!(a.len(), 20, "{name}: {full}");
