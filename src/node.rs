@@ -608,14 +608,6 @@ impl Publishers {
         })
     }
 
-    /// Publishers of IDs not listed in `marker_ids` (the bounded ones).
-    fn unlisted(&self, params: &NodeParams) -> usize {
-        self.poses
-            .keys()
-            .filter(|id| !params.marker_ids.contains(id))
-            .count()
-    }
-
     /// The publisher of `~/relative/marker_<a>_<b>/pose`, created on first use (ROS name
     /// tokens cannot start with a digit, hence `marker_`).
     fn relative_pose(
@@ -754,6 +746,19 @@ fn work_loop(
     }
 }
 
+/// Whether marker `id` gets (or has) its own pose publishers, given the IDs that have them:
+/// listed IDs always, others until `max_marker_publishers` of them exist (each is kept once
+/// created: a new DDS writer loses its first samples to discovery).
+fn may_publish(id: u64, with_publishers: &[u64], params: &NodeParams) -> bool {
+    let unlisted = with_publishers
+        .iter()
+        .filter(|i| !params.marker_ids.contains(i))
+        .count();
+    with_publishers.contains(&id)
+        || params.marker_ids.contains(&id)
+        || unlisted < params.max_marker_publishers
+}
+
 /// Publishes one frame's outputs; returns the failures.
 fn publish(
     output: &FrameOutput,
@@ -766,10 +771,8 @@ fn publish(
     // Per-marker poses before the arrays: a controller reading an array sees them all sent.
     for ((id, pose), (_, with_covariance)) in output.poses.iter().zip(&output.poses_with_covariance)
     {
-        if !publishers.poses.contains_key(id)
-            && !params.marker_ids.contains(id)
-            && publishers.unlisted(params) >= params.max_marker_publishers
-        {
+        let known: Vec<u64> = publishers.poses.keys().copied().collect();
+        if !may_publish(*id, &known, params) {
             failures.push(format!(
                 "marker {id}: max_marker_publishers ({}) reached, its pose is only in \
                  ~/markers and ~/detections",
@@ -814,4 +817,27 @@ fn publish(
         failures.push(format!("markers: {e:?}"));
     }
     failures
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::params::ParamValue;
+
+    #[test]
+    fn per_marker_publishers_are_bounded_for_unlisted_ids() {
+        let startup = NodeParams::from_overrides(&[
+            ("period".into(), ParamValue::Double(10.0)),
+            ("marker_ids".into(), ParamValue::IntegerArray(vec![5])),
+            ("max_marker_publishers".into(), ParamValue::Integer(2)),
+        ]);
+        let params = startup.map(|s| s.params).unwrap_or_else(|e| panic!("{e}"));
+        // Listed IDs always; two unlisted ones; then only those that already have theirs.
+        assert!(may_publish(5, &[], &params));
+        assert!(may_publish(7, &[5], &params));
+        assert!(may_publish(8, &[5, 7], &params));
+        assert!(!may_publish(9, &[5, 7, 8], &params));
+        assert!(may_publish(7, &[5, 7, 8], &params));
+        assert!(may_publish(5, &[5, 7, 8], &params));
+    }
 }
