@@ -749,14 +749,16 @@ fn work_loop(
 /// Whether marker `id` gets (or has) its own pose publishers, given the IDs that have them:
 /// listed IDs always, others until `max_marker_publishers` of them exist (each is kept once
 /// created: a new DDS writer loses its first samples to discovery).
-fn may_publish(id: u64, with_publishers: &[u64], params: &NodeParams) -> bool {
-    let unlisted = with_publishers
-        .iter()
-        .filter(|i| !params.marker_ids.contains(i))
-        .count();
-    with_publishers.contains(&id)
+fn may_publish<T>(id: u64, with_publishers: &BTreeMap<u64, T>, params: &NodeParams) -> bool {
+    let unlisted = || {
+        with_publishers
+            .keys()
+            .filter(|i| !params.marker_ids.contains(i))
+            .count()
+    };
+    with_publishers.contains_key(&id)
         || params.marker_ids.contains(&id)
-        || unlisted < params.max_marker_publishers
+        || unlisted() < params.max_marker_publishers
 }
 
 /// Publishes one frame's outputs; returns the failures.
@@ -771,8 +773,7 @@ fn publish(
     // Per-marker poses before the arrays: a controller reading an array sees them all sent.
     for ((id, pose), (_, with_covariance)) in output.poses.iter().zip(&output.poses_with_covariance)
     {
-        let known: Vec<u64> = publishers.poses.keys().copied().collect();
-        if !may_publish(*id, &known, params) {
+        if !may_publish(*id, &publishers.poses, params) {
             failures.push(format!(
                 "marker {id}: max_marker_publishers ({}) reached, its pose is only in \
                  ~/markers and ~/detections",
@@ -832,12 +833,13 @@ mod tests {
             ("max_marker_publishers".into(), ParamValue::Integer(2)),
         ]);
         let params = startup.map(|s| s.params).unwrap_or_else(|e| panic!("{e}"));
+        let with = |ids: &[u64]| -> BTreeMap<u64, ()> { ids.iter().map(|&i| (i, ())).collect() };
         // Listed IDs always; two unlisted ones; then only those that already have theirs.
-        assert!(may_publish(5, &[], &params));
-        assert!(may_publish(7, &[5], &params));
-        assert!(may_publish(8, &[5, 7], &params));
-        assert!(!may_publish(9, &[5, 7, 8], &params));
-        assert!(may_publish(7, &[5, 7, 8], &params));
-        assert!(may_publish(5, &[5, 7, 8], &params));
+        assert!(may_publish(5, &with(&[]), &params));
+        assert!(may_publish(7, &with(&[5]), &params));
+        assert!(may_publish(8, &with(&[5, 7]), &params));
+        assert!(!may_publish(9, &with(&[5, 7, 8]), &params));
+        assert!(may_publish(7, &with(&[5, 7, 8]), &params));
+        assert!(may_publish(5, &with(&[5, 7, 8]), &params));
     }
 }

@@ -639,18 +639,22 @@ impl NodeParams {
             ParamValue::StringArray(v) => Ok(v),
             other => Err(format!("`{name}` must be a string array, got {other:?}")),
         };
-        // 0 = default, else within the schema's range for `name`.
-        let optional_count = |name: &str| -> Result<Option<i64>, String> {
+        // An integer within the schema's range for `name` (0 = `None` where 0 means
+        // "default").
+        let ranged = |name: &str| -> Result<Option<i64>, String> {
             let range = spec_range(name);
+            let zero_default = range.is_some_and(|r| r.zero_means_default);
             match integer(name)? {
-                0 => Ok(None),
+                0 if zero_default => Ok(None),
                 v if range.is_some_and(|r| (r.min..=r.max).contains(&(v as f64))) => Ok(Some(v)),
                 v => Err(format!(
-                    "`{name}` must be 0 (default) or in {}, got {v}",
+                    "`{name}` must be {}in {}, got {v}",
+                    if zero_default { "0 (default) or " } else { "" },
                     range.map_or("range".into(), |r| format!("{}..={}", r.min, r.max))
                 )),
             }
         };
+        let flag = |name: &str| boolean(name, &get(name));
 
         let pattern_type: MarkerKind = string("pattern_type")?
             .parse()
@@ -668,9 +672,9 @@ impl NodeParams {
             .find(|(name, _)| *name == unit)
             .map(|(_, m)| *m)
             .ok_or_else(|| format!("`period_unit` must be nm, um, mm or m, got `{unit}`"))?;
-        let code_size = optional_count("code_size")?;
-        let code_depth = optional_count("code_depth")?;
-        let window_size = optional_count("window_size")?;
+        let code_size = ranged("code_size")?;
+        let code_depth = ranged("code_depth")?;
+        let window_size = ranged("window_size")?;
         let polarity =
             vernier::parse_polarity_setting(&string("polarity")?).map_err(|e| e.to_string())?;
         let bitmaps = strings("bitmaps")?;
@@ -693,10 +697,7 @@ impl NodeParams {
             .map_err(|e| e.to_string())?;
         let camera_frame = string("camera_frame")?;
         let marker_frame_prefix = string("marker_frame_prefix")?;
-        let publish_tf = match get("publish_tf") {
-            ParamValue::Boolean(b) => b,
-            other => return Err(format!("`publish_tf` must be a bool, got {other:?}")),
-        };
+        let publish_tf = flag("publish_tf")?;
         let max_rate =
             limits::check_rate("max_rate", double("max_rate")?).map_err(|e| e.to_string())?;
         let compressed_input = match string("image_transport")?.as_str() {
@@ -714,30 +715,10 @@ impl NodeParams {
                 "`image_qos` must be sensor_data or reliable, got `{image_qos}`"
             ));
         }
-        let max_marker_publishers = match integer("max_marker_publishers")? {
-            v if spec_range("max_marker_publishers")
-                .is_some_and(|r| (r.min..=r.max).contains(&(v as f64))) =>
-            {
-                v as usize
-            }
-            v => {
-                return Err(format!(
-                    "`max_marker_publishers` must be in 1..=100000, got {v}"
-                ))
-            }
-        };
-        let tracking = match get("tracking") {
-            ParamValue::Boolean(b) => b,
-            other => return Err(format!("`tracking` must be a bool, got {other:?}")),
-        };
-        let reacquire_every = match integer("reacquire_every")? {
-            v @ 0..=1_000_000 => v as usize,
-            v => {
-                return Err(format!(
-                    "`reacquire_every` must be in 0..=1000000 frames, got {v}"
-                ))
-            }
-        };
+        // Both ranges exclude 0-as-default, so `ranged` gives `Some`.
+        let max_marker_publishers = ranged("max_marker_publishers")?.unwrap_or(1) as usize;
+        let tracking = flag("tracking")?;
+        let reacquire_every = ranged("reacquire_every")?.unwrap_or(0) as usize;
         let max_image_pixels = u64::try_from(integer("max_image_pixels")?)
             .map_err(|_| "`max_image_pixels` must be ≥ 1 pixel".to_string())
             .and_then(|v| limits::check_max_pixels(v).map_err(|e| e.to_string()))?;
@@ -751,10 +732,7 @@ impl NodeParams {
             window_size: window_size.map(|v| v as usize),
             polarity,
             bitmaps: bitmaps.iter().map(PathBuf::from).collect(),
-            pose_3d: match get("pose_3d") {
-                ParamValue::Boolean(b) => b,
-                other => return Err(format!("`pose_3d` must be a bool, got {other:?}")),
-            },
+            pose_3d: flag("pose_3d")?,
         };
         let params = NodeParams {
             values,

@@ -336,19 +336,25 @@ fn render_perspective(layout: &dyn Layout, pose: &Pose, focal: f64, size: usize)
     GreyImage::new(size, size, pixels).unwrap()
 }
 
+/// The pose of the perspective and tilt tests: an off-centre Megarena pattern tilted by
+/// `beta` (about its y axis) and `gamma` (about x), radians.
+fn tilted(beta: f64, gamma: f64) -> Pose {
+    Pose {
+        x: -3000.0,
+        y: -4200.0,
+        z: 0.0,
+        alpha: 0.8,
+        beta,
+        gamma,
+        pixel_size: 1.1,
+    }
+}
+
 #[test]
 fn perspective_cue_picks_the_right_mirror_solution() {
     let layout = MegarenaLayout::new(10.0, 8).unwrap();
     for (beta, gamma) in [(0.35, -0.25), (-0.3, -0.3), (0.25, 0.4)] {
-        let truth = Pose {
-            x: -3000.0,
-            y: -4200.0,
-            z: 0.0,
-            alpha: 0.8,
-            beta,
-            gamma,
-            pixel_size: 1.1,
-        };
+        let truth = tilted(beta, gamma);
         let focal = 8000.0;
         let image = render_perspective(&layout, &truth, focal, 512);
         let mut detector = MegarenaDetector::new(MegarenaParams::new(10.0, 8).unwrap()).unwrap();
@@ -555,15 +561,7 @@ fn pose_3d_setting_measures_tilts_of_perspective_renders() {
     let focal = 8000.0;
     let (mut worst, mut weakest_cue) = (0.0f64, f64::INFINITY);
     for (beta, gamma) in tilts() {
-        let truth = Pose {
-            x: -3000.0,
-            y: -4200.0,
-            z: 0.0,
-            alpha: 0.8,
-            beta,
-            gamma,
-            pixel_size: 1.1,
-        };
+        let truth = tilted(beta, gamma);
         let image = render_perspective(&layout, &truth, focal, 512);
         let markers = detector.detect(&image).unwrap();
         assert_eq!(markers.len(), 1);

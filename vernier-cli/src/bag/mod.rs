@@ -279,22 +279,20 @@ impl Replay {
 /// `fq_node` (the node's rules: name patterns, validation, foreign names ignored with a
 /// warning), then the command-line overrides.
 fn replay_params(args: &BagArgs) -> Result<NodeParams, String> {
-    let mut overrides = Vec::new();
-    if let Some(path) = &args.params {
-        let text = vernier::limits::read_text_bounded(
-            path,
-            vernier::limits::MAX_PARAM_FILE_BYTES,
-            "parameter file",
-        )?;
-        let fq_node = args.namespace.trim_end_matches('/');
-        let (namespace, node) = match fq_node.rsplit_once('/') {
-            Some(("", node)) => ("/", node),
-            Some((namespace, node)) => (namespace, node),
-            None => ("/", fq_node),
-        };
-        overrides = ros_args::parse_params_file(&text, namespace, node)
-            .map_err(|e| format!("{}: {e}", path.display()))?;
-    }
+    // The parameter file is read as the node reads its `--params-file`.
+    let fq_node = args.namespace.trim_end_matches('/');
+    let (namespace, node) = match fq_node.rsplit_once('/') {
+        Some(("", node)) => ("/", node),
+        Some((namespace, node)) => (namespace, node),
+        None => ("/", fq_node),
+    };
+    let file_args = ros_args::RosArgs {
+        params_files: args.params.iter().cloned().collect(),
+        ..ros_args::RosArgs::default()
+    };
+    let mut overrides = file_args
+        .parameter_overrides(namespace, node)
+        .map_err(|e| e.to_string())?;
     if let Some(p) = &args.pattern {
         let text = p.to_string_lossy().into_owned();
         overrides.push(("pattern_file".into(), ParamValue::String(text)));
