@@ -95,6 +95,10 @@ struct DetectArgs {
     /// JSON as `pose_3d_cue_strength`.
     #[arg(long = "pose-3d")]
     pose_3d: bool,
+    /// HP codes: keep the analysis window's planes instead of refining each decoded marker on
+    /// its whole regular dot field (docs/design.md#field-fit): faster, less precise.
+    #[arg(long = "no-field-fit")]
+    no_field_fit: bool,
     /// Treat the images as one sequence, in order, and track the markers from frame to frame
     /// (HP codes: the finder search runs on the first frame, on loss and every
     /// `--reacquire-every` frames; same poses as without it while markers move less than half
@@ -247,6 +251,7 @@ fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
         polarity: args.polarity.0,
         bitmaps: args.bitmap.clone(),
         pose_3d: args.pose_3d,
+        field_fit: Some(!args.no_field_fit),
     };
     let config = settings.to_config().map_err(|e| e.to_string())?;
     let mut detector = Detector::new(config).map_err(|e| e.to_string())?;

@@ -394,6 +394,14 @@ pub fn specs() -> Vec<ParamSpec> {
              planar poses, pitch and roll variances 1e6).",
         ),
         spec(
+            "field_fit",
+            V::Boolean(true),
+            "HP codes and stamps: after decoding, refine each marker on its whole regular dot \
+             field with robust weights (dust, hair and scratches ignored; \
+             docs/design.md#field-fit). false keeps the analysis window's planes: faster, less \
+             precise.",
+        ),
+        spec(
             "tracking",
             V::Boolean(true),
             "Track markers from frame to frame (HP codes): the finder search runs on the first \
@@ -733,6 +741,7 @@ impl NodeParams {
             polarity,
             bitmaps: bitmaps.iter().map(PathBuf::from).collect(),
             pose_3d: flag("pose_3d")?,
+            field_fit: Some(flag("field_fit")?),
         };
         let params = NodeParams {
             values,

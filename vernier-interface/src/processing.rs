@@ -757,6 +757,7 @@ mod tests {
             decode_confidence: None,
             pose_3d_cue_strength: None,
             window_px: 256,
+            yaw_std: None,
         };
         let a = vernier::Pose::planar(10.0, 20.0, 0.5, 1.0);
         let b = vernier::Pose::from_origin_in_image(

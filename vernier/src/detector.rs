@@ -42,6 +42,10 @@ pub struct MarkerPose {
     /// analysis window (HP codes, stamps) or the whole image (periodic, Megarena). The
     /// `window_px` to give [`MarkerPose::covariance`].
     pub window_px: usize,
+    /// Standard deviation of `pose.alpha` measured by the fit itself, radians (HP codes'
+    /// whole-field fit, docs/design.md#field-fit); `None`: [`MarkerPose::covariance`] derives
+    /// it from `phase_std` and the window.
+    pub yaw_std: Option<f64>,
 }
 
 impl MarkerPose {
@@ -57,7 +61,8 @@ impl MarkerPose {
     /// under the engine's sine-cubed window; `decode_confidence` is `None` for them only), √12
     /// for the decoded types (HP codes and stamps average both planes' directions under that
     /// window, 4.85/√2 = 3.43; Megarena fits its planes uniformly over the dots and takes one,
-    /// √12 = 3.46). Unobserved axes (z, roll, pitch for planar poses) get a variance of `1e6`
+    /// √12 = 3.46). When the fit measured it ([`MarkerPose::yaw_std`], HP codes' whole-field
+    /// fit), that σ is used instead. Unobserved axes (z, roll, pitch for planar poses) get a variance of `1e6`
     /// (large, per ROS convention for "unknown").
     ///
     /// With out-of-plane angles ([`MarkerPose::pose_3d_cue_strength`] set), `cTp`'s rotation
@@ -89,7 +94,9 @@ impl MarkerPose {
             Some(_) => 12f64.sqrt(),
         };
         let k = std::f64::consts::TAU * self.pose.pixel_size / period;
-        let s_alpha = if k > 0.0 && window_px > 0.0 {
+        let s_alpha = if let Some(measured) = self.yaw_std {
+            measured
+        } else if k > 0.0 && window_px > 0.0 {
             self.phase_std[0] * kappa / (k * window_px)
         } else {
             f64::INFINITY
@@ -186,6 +193,10 @@ pub struct DetectorSettings {
     /// [`MarkerPose::pose_3d_cue_strength`]; [`MarkerPose::covariance`] then gives roll and
     /// pitch real variances.
     pub pose_3d: bool,
+    /// HP codes and stamps: refine each decoded marker on its whole regular dot field,
+    /// robustly (docs/design.md#field-fit). `None` (default) = on; `Some(false)` keeps the
+    /// analysis window's planes (faster, less precise).
+    pub field_fit: Option<bool>,
 }
 
 impl DetectorSettings {
@@ -278,6 +289,7 @@ impl DetectorSettings {
                 let mut p = HpCodeParams::new(require_period()?, code_size);
                 p.window_size = self.window_size;
                 p.polarity = self.polarity;
+                p.field_fit = self.field_fit.unwrap_or(true);
                 p.validate()?;
                 Ok(DetectorConfig::HpCode(p))
             }
@@ -300,6 +312,7 @@ impl DetectorSettings {
                 let mut p = StampParams::new(period, bitmaps);
                 p.window_size = self.window_size;
                 p.polarity = self.polarity;
+                p.field_fit = self.field_fit.unwrap_or(true);
                 Ok(DetectorConfig::Stamp(p))
             }
         }
@@ -477,6 +490,7 @@ impl From<&PeriodicDetection> for MarkerPose {
             decode_confidence: None,
             pose_3d_cue_strength: None,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
+            yaw_std: None,
         }
     }
 }
@@ -499,6 +513,7 @@ impl From<&MegarenaDetection> for MarkerPose {
             decode_confidence: Some(found.decode_confidence),
             pose_3d_cue_strength,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
+            yaw_std: None,
         }
     }
 }
@@ -510,11 +525,12 @@ impl From<&StampDetection> for MarkerPose {
             pose: found.pose,
             origin_px: found.origin_px,
             quality: found.analysis.quality,
-            phase_std: found.analysis.phase_std,
+            phase_std: found.phase_std,
             duplicate_id: false,
             decode_confidence: Some(found.decode_confidence),
             pose_3d_cue_strength: None,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
+            yaw_std: found.yaw_std,
         }
     }
 }
@@ -526,11 +542,12 @@ impl From<&HpCodeMarker> for MarkerPose {
             pose: found.pose,
             origin_px: found.origin_px,
             quality: found.analysis.quality,
-            phase_std: found.analysis.phase_std,
+            phase_std: found.phase_std,
             duplicate_id: false,
             decode_confidence: Some(found.id_confidence),
             pose_3d_cue_strength: None,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
+            yaw_std: found.yaw_std,
         }
     }
 }
@@ -559,6 +576,7 @@ mod tests {
             decode_confidence: None,
             pose_3d_cue_strength: None,
             window_px: 256,
+            yaw_std: None,
         }
     }
 

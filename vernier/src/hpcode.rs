@@ -31,7 +31,7 @@ pub use grouping::{group_finders, pair_hypotheses, FinderTriple};
 
 use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
-use crate::phase::{wrap_angle, LobePrior, PhaseAnalysis, PhaseEngine, PhaseParams};
+use crate::phase::{wrap_angle, FieldFit, LobePrior, PhaseAnalysis, PhaseEngine, PhaseParams};
 use crate::pose::{rotate2, Pose};
 use finders::FinderScanner;
 use nalgebra::Vector2;
@@ -102,6 +102,11 @@ pub struct HpCodeParams {
     /// Threads measuring the candidate markers of a frame in parallel (they are independent);
     /// 0 (default) = every core the system offers. Results do not depend on it.
     pub threads: usize,
+    /// After decoding, refine the planes on the marker's whole regular dot field, robustly
+    /// (docs/design.md#field-fit): every plain dot of the layout with plain neighbours, dust and
+    /// hair down-weighted. Default `true`; the window's planes give the pose when `false`
+    /// (and with [`HpCodeParams::original`]).
+    pub field_fit: bool,
 }
 
 /// How the pose of a marker follows from its two phase planes.
@@ -136,6 +141,7 @@ impl HpCodeParams {
             phase: PhaseParams::default(),
             pose_formula: PoseFormula::Symmetric,
             threads: 0,
+            field_fit: true,
         }
     }
 
@@ -151,6 +157,7 @@ impl HpCodeParams {
         p.phase.refine_iterations = 0;
         p.phase.min_frequency = 20.0;
         p.pose_formula = PoseFormula::Original;
+        p.field_fit = false;
         p
     }
 
@@ -223,6 +230,14 @@ pub struct HpCodeMarker {
     pub window: ((i64, i64), usize),
     /// Phase-engine output on the window (planes in the window frame).
     pub analysis: PhaseAnalysis,
+    /// The whole-field fit that gave the pose (docs/design.md#field-fit); `None` when the
+    /// window's planes gave it ([`HpCodeParams::field_fit`] off, or a field too small to fit).
+    pub field: Option<FieldFit>,
+    /// Standard deviation of the pattern-x and pattern-y phases at the marker centre, radians
+    /// (white noise and model error of the fit that gave the pose).
+    pub phase_std: [f64; 2],
+    /// Standard deviation of `pose.alpha` from the whole-field fit, radians; `None` without it.
+    pub yaw_std: Option<f64>,
 }
 
 /// Detects HP code markers. Keeps the phase engine's FFT plans and the finder scanner's buffers
@@ -603,8 +618,40 @@ impl Measure<'_> {
         if support < MIN_GRID_SUPPORT {
             return reject(&format!("grid support {support:.3} < {MIN_GRID_SUPPORT}"));
         }
+        let (grid, field) = match self.params.field_fit {
+            true => match fine::refine_on_field(image, &grid, reading.id, reading.mirrored) {
+                Some((refined, fit)) => {
+                    log::debug!(
+                        "marker {}: field fit over {} px, {} iterations, {:.1} % inliers, \
+                         residual σ {:.2e}, orientation σ {:.2e} rad",
+                        reading.id,
+                        fit.pixels,
+                        fit.iterations,
+                        100.0 * fit.inlier_fraction,
+                        fit.residual_std,
+                        fit.mean_direction_std()
+                    );
+                    (refined, Some(fit))
+                }
+                None => {
+                    log::debug!(
+                        "marker {}: no whole-field fit, window planes kept",
+                        reading.id
+                    );
+                    (grid, None)
+                }
+            },
+            false => (grid, None),
+        };
         let (icx, icy) = image.center();
         let image_center = Vector2::new(icx as f64, icy as f64);
+        let (phase_std, yaw_std) = match &field {
+            Some(fit) => {
+                let c = grid.dots.center - image_center;
+                (fit.phase_std_at(c.x, c.y), Some(fit.mean_direction_std()))
+            }
+            None => (analysis.phase_std, None),
+        };
         let pose = self.pose(
             &grid,
             &analysis,
@@ -623,6 +670,9 @@ impl Measure<'_> {
             finders,
             window: (center, size),
             analysis,
+            field,
+            phase_std,
+            yaw_std,
         }))
     }
 

@@ -127,7 +127,12 @@ fn synthetic_scenes_every_marker_found_with_its_id_and_pose() {
         "{markers} markers: worst {worst_px:.2e} px, {worst_rad:.2e} rad, pixel size {worst_scale:.1e} (relative)"
     );
     assert!(worst_px < 2e-3, "position error {worst_px:.2e} px");
-    assert!(worst_rad < 1e-5, "angle error {worst_rad:.2e} rad");
+    // Noise-free renders of dots sharper than the pixel grid (0.5 px blur at 7–11 px
+    // periods): harmonics beyond the fifth alias, and the whole-field fit, which models the
+    // harmonics instead of windowing them away, keeps a bias of up to ~1.3e-5 rad there
+    // (2e-8 rad at 1 px blur; docs/design.md#field-fit). Under 1 % noise it is 5× more
+    // precise than the window (tests/efficiency.rs).
+    assert!(worst_rad < 2e-5, "angle error {worst_rad:.2e} rad");
 }
 
 #[test]
@@ -570,8 +575,11 @@ fn rotations_and_flips_of_real_images_move_poses_exactly() {
                 assert_eq!(n.mirrored, mirrored, "{name} {} id {}", t.name, m.id);
                 let err_px = (n.origin_px - origin).norm();
                 let err_rad = wrap_to_pi(n.pose.alpha - axis.y.atan2(axis.x)).abs();
+                // The whole-field fit bins a large field 2 × 2; a rotated or flipped image pairs
+                // other pixels into the bins, so the estimate differs within its own
+                // uncertainty (yaw σ ~1.3e-5 rad here, the pixel size likewise).
                 assert!(
-                    (n.pose.pixel_size / m.pose.pixel_size - 1.0).abs() < 1e-7,
+                    (n.pose.pixel_size / m.pose.pixel_size - 1.0).abs() < 3e-5,
                     "{name} {}: {:?} {:?} windows {:?} {:?} lobes {:?} {:?}",
                     t.name,
                     m.pose,
@@ -588,7 +596,7 @@ fn rotations_and_flips_of_real_images_move_poses_exactly() {
                     m.id
                 );
                 assert!(
-                    err_rad < 1e-5,
+                    err_rad < 3e-5,
                     "{name} {} id {}: {err_rad:.2e} rad",
                     t.name,
                     m.id
@@ -599,4 +607,58 @@ fn rotations_and_flips_of_real_images_move_poses_exactly() {
         }
     }
     println!("rotations and flips: worst {worst_px:.2e} px, {worst_rad:.2e} rad");
+}
+
+#[test]
+fn whole_field_fit_ignores_dust_and_hair_over_the_dots() {
+    // A 33-cell marker at 9 px per period with 1 % noise; a dark blot over 2 × 3 periods of
+    // its dot field and a bright hair across it (docs/design.md#field-fit). The window alone
+    // is biased by them; the whole-field fit down-weights their cells.
+    let period_px = 9.0;
+    let truth = Pose::from_origin_in_image(Vector2::new(3.3, -4.1), 0.37, PERIOD / period_px);
+    let layout = HpCodeLayout::new(PERIOD, 17).unwrap().with_id(11).unwrap();
+    let mut opts = RenderOptions::new(320, 320);
+    opts.blur_sigma = 1.0;
+    opts.noise_std = 0.01;
+    opts.seed = 7;
+    let items: Vec<(&dyn Layout, Pose)> = vec![(&layout, truth)];
+    let mut image = render_scene(&items, &opts).unwrap();
+    let origin = truth.origin_in_image() + Vector2::new(160.0, 160.0);
+    let (w, h) = (image.width(), image.height());
+    for r in 0..h {
+        for c in 0..w {
+            let p = Vector2::new(c as f64, r as f64) - origin;
+            let blot = (p - Vector2::new(25.0, 10.0)).abs();
+            let hair = (p.x * 0.8 - p.y * 0.6 + 15.0).abs() < 1.2 && p.norm() < 60.0;
+            let v = &mut image.pixels_mut()[r * w + c];
+            if blot.x < 13.0 && blot.y < 9.0 {
+                *v = 0.05;
+            } else if hair {
+                *v = 0.95;
+            }
+        }
+    }
+    let measure = |field_fit: bool| {
+        let mut params = HpCodeParams::new(PERIOD, 33);
+        params.field_fit = field_fit;
+        let found = HpCodeDetector::new(params).unwrap().detect(&image).unwrap();
+        assert_eq!(found.len(), 1, "field fit {field_fit}: {found:?}");
+        let m = &found[0];
+        assert_eq!(m.id, 11);
+        assert_eq!(m.field.is_some(), field_fit);
+        (
+            (m.origin_px - origin).norm(),
+            wrap_to_pi(m.pose.alpha - truth.alpha).abs(),
+        )
+    };
+    let (field_px, field_rad) = measure(true);
+    let (window_px, window_rad) = measure(false);
+    println!(
+        "dust and hair: whole field {field_px:.2e} px, {field_rad:.2e} rad; window \
+         {window_px:.2e} px, {window_rad:.2e} rad"
+    );
+    assert!(
+        field_px < 3e-3 && field_rad < 5e-5,
+        "{field_px:.2e} px {field_rad:.2e} rad"
+    );
 }

@@ -11,7 +11,9 @@
 
 use super::grouping::FinderTriple;
 use super::marker_id::DotGrid;
-use crate::phase::{wrap_to_pi, PhasePlane};
+use crate::grey_image::GreyImage;
+use crate::layout::HpCodeLayout;
+use crate::phase::{fit_dot_field, wrap_to_pi, FieldFit, NodeMask, PhasePlane};
 use nalgebra::{Matrix2, Vector2};
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
@@ -143,6 +145,72 @@ pub(crate) fn locate(
             size: code_size.div_ceil(2),
         },
     })
+}
+
+/// The marker grid refined on its whole regular dot field (docs/design.md#field-fit), and the
+/// fit. `id` and `mirrored` are the decoded ones: they say which dots exist. The field is every
+/// regular dot of the layout's bitmap ([`BitmapLayout::is_regular_dot`]: no finder, missing ID
+/// dot or marker edge within one period). `None` when the field is too small or the fit fails
+/// (the caller keeps the window's grid).
+///
+/// [`BitmapLayout::is_regular_dot`]: crate::layout::BitmapLayout::is_regular_dot
+pub(crate) fn refine_on_field(
+    image: &GreyImage,
+    grid: &MarkerGrid,
+    id: u64,
+    mirrored: bool,
+) -> Option<(MarkerGrid, FieldFit)> {
+    let dots = &grid.dots;
+    let n = dots.size;
+    let bitmap = HpCodeLayout::new(1.0, n)
+        .ok()?
+        .with_id(id)
+        .ok()?
+        .to_bitmap();
+    let last = n as i64 - 1;
+    // Nodes (k₁, k₂) = (c, r), dot indices: plane 1 counts columns, plane 2 rows. A mirrored
+    // marker shows its layout transposed.
+    let mask = NodeMask::from_fn(0..=last, 0..=last, |c, r| {
+        let (r, c) = if mirrored { (c, r) } else { (r, c) };
+        bitmap.is_regular_dot(2 * r as usize, 2 * c as usize)
+    });
+    let (cx, cy) = image.center();
+    let origin = Vector2::new(cx as f64, cy as f64);
+    let steps = Matrix2::from_columns(&[dots.step_x, dots.step_y]);
+    let to_index = steps.try_inverse()?;
+    let h = (n - 1) as f64 / 2.0;
+    // φ_x = 2π·c, φ_y = 2π·r at dot (r, c): dot index = h + S⁻¹·(p − centre).
+    let plane = |k: usize| {
+        let row = to_index.row(k);
+        PhasePlane {
+            a: TAU * row[0],
+            b: TAU * row[1],
+            c: TAU * (h + (row * (origin - dots.center))[0]),
+        }
+    };
+    let fit = fit_dot_field(image, [plane(0), plane(1)], &mask)?;
+    let [px, py] = fit.planes;
+    let gradients = Matrix2::new(px.a, px.b, py.a, py.b);
+    let inverse = gradients.try_inverse()?;
+    let center = origin + inverse * Vector2::new(TAU * h - px.c, TAU * h - py.c);
+    let mut refined = *grid;
+    refined.plane_x = PhasePlane {
+        a: px.a,
+        b: px.b,
+        ..grid.plane_x
+    };
+    refined.plane_y = PhasePlane {
+        a: py.a,
+        b: py.b,
+        ..grid.plane_y
+    };
+    refined.dots = DotGrid {
+        center,
+        step_x: inverse * Vector2::new(TAU, 0.0),
+        step_y: inverse * Vector2::new(0.0, TAU),
+        size: n,
+    };
+    Some((refined, fit))
 }
 
 #[cfg(test)]

@@ -187,6 +187,19 @@ impl BitmapLayout {
             && col < self.n_cols
             && self.cells.get(row * self.n_cols + col) == Some(&true)
     }
+    /// Whether cell `(row, col)` is a dot of the *regular* grid: within one period of it (the
+    /// 5 × 5 cells centred on it, all inside the bitmap) the bitmap is exactly the periodic
+    /// dot grid — cells of the dot's parity set, all others clear. No frame, glyph, missing
+    /// dot or bitmap edge is that close. The dots a whole-field fit may treat as periodic
+    /// (docs/design.md#field-fit).
+    pub fn is_regular_dot(&self, row: usize, col: usize) -> bool {
+        if row < 2 || col < 2 || row + 2 >= self.n_rows || col + 2 >= self.n_cols {
+            return false;
+        }
+        (0..5).all(|dr| {
+            (0..5).all(|dc| self.cell(row + dr - 2, col + dc - 2) == (dr % 2 == 0 && dc % 2 == 0))
+        })
+    }
     /// Row-major cells (`cell_rows() · cell_cols()` values).
     pub fn cells(&self) -> &[bool] {
         &self.cells

@@ -15,6 +15,7 @@
 
 mod bandpass;
 pub(crate) mod fft_size;
+pub mod field_fit;
 pub mod inspect;
 mod lobes;
 mod noise;
@@ -23,6 +24,7 @@ mod refine;
 mod spectrum;
 
 pub use bandpass::PhaseMap;
+pub use field_fit::{fit_dot_field, FieldFit, NodeMask};
 pub use inspect::{PhaseInspection, SpectrumView};
 pub use lobes::Lobe;
 pub use plane::{fit_plane, wrap_angle, wrap_to_pi, PhasePlane};

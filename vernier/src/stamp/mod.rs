@@ -45,7 +45,8 @@ use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
 use crate::layout::BitmapLayout;
 use crate::phase::{
-    wrap_angle, PhaseAnalysis, PhaseEngine, PhaseParams, PhasePlane, MIN_IMAGE_SIDE,
+    fit_dot_field, wrap_angle, FieldFit, NodeMask, PhaseAnalysis, PhaseEngine, PhaseParams,
+    PhasePlane, MIN_IMAGE_SIDE,
 };
 use crate::pose::Pose;
 use matching::{best_match, Match, SearchRange, Template};
@@ -114,6 +115,11 @@ pub struct StampParams {
     /// (`gamma = −π`, see the module docs). Default true; false drops them (and mirrored
     /// readings are then no rivals of proper ones in the decode confidence).
     pub allow_mirrored: bool,
+    /// After decoding, refine the planes on the bitmap's whole regular dot field, robustly
+    /// (docs/design.md#field-fit): every dot with a plain periodic neighbourhood in the
+    /// bitmap, dust and hair down-weighted. Default `true`; the window's planes give the pose
+    /// when `false`.
+    pub field_fit: bool,
     /// Phase-engine settings.
     pub phase: PhaseParams,
 }
@@ -135,6 +141,7 @@ impl StampParams {
             size_tolerance: 0.15,
             max_frame_offset: 0.5,
             allow_mirrored: true,
+            field_fit: true,
             phase: PhaseParams::default(),
         }
     }
@@ -278,8 +285,15 @@ pub struct StampDetection {
     pub window_center: (i64, i64),
     /// Side of the analysed square window, pixels (the image size for full-image search).
     pub window_size: usize,
-    /// Phase-engine output the pose was computed from (planes in the window's frame).
+    /// Phase-engine output of the analysed window (planes in the window's frame).
     pub analysis: PhaseAnalysis,
+    /// The whole-field fit that gave the pose (docs/design.md#field-fit); `None` when the
+    /// window's planes gave it ([`StampParams::field_fit`] off, or a field too small to fit).
+    pub field: Option<FieldFit>,
+    /// Standard deviation of the pattern-x and pattern-y phases at the origin, radians.
+    pub phase_std: [f64; 2],
+    /// Standard deviation of `pose.alpha` from the whole-field fit, radians; `None` without it.
+    pub yaw_std: Option<f64>,
 }
 
 /// Finds stamp / bitmap markers and measures their absolute poses. Keeps FFT plans, the
@@ -745,9 +759,72 @@ impl StampDetector {
                 found.vote
             );
         }
+        let field = self.refine_on_field(image, &found, &planes, origin);
+        let planes = field.as_ref().map_or(planes, |(p, _)| *p);
         Ok(self
             .detection(found, &planes, origin, image, frame, center, size, analysis)
-            .map(|d| StampDetection { polarity, ..d }))
+            .map(|d| {
+                let (icx, icy) = image.center();
+                let at = d.origin_px - Vector2::new(icx as f64, icy as f64);
+                let (phase_std, yaw_std, field) = match field {
+                    Some((_, fit)) => {
+                        let mut s = fit.phase_std_at(at.x, at.y);
+                        if found.orientation.matrix()[0][0] == 0 {
+                            s.swap(0, 1); // pattern x runs along plane 2
+                        }
+                        (s, Some(fit.mean_direction_std()), Some(fit))
+                    }
+                    None => (d.phase_std, None, None),
+                };
+                StampDetection {
+                    polarity,
+                    field,
+                    phase_std,
+                    yaw_std,
+                    ..d
+                }
+            }))
+    }
+
+    /// The planes (frame of `origin`, as given) refined on the matched bitmap's whole regular
+    /// dot field (docs/design.md#field-fit), with the fit; `None` when
+    /// [`StampParams::field_fit`] is off or the fit fails (the window's planes stand).
+    fn refine_on_field(
+        &self,
+        image: &GreyImage,
+        found: &Match,
+        planes: &[PhasePlane; 2],
+        origin: Vector2<f64>,
+    ) -> Option<([PhasePlane; 2], FieldFit)> {
+        if !self.params.field_fit {
+            return None;
+        }
+        let template = self.templates.get(found.bitmap)?;
+        // Planes in the image frame (origin at the centre pixel) and back.
+        let (icx, icy) = image.center();
+        let shift = Vector2::new(icx as f64, icy as f64) - origin;
+        let moved = |p: &PhasePlane, s: f64| PhasePlane {
+            c: p.c + s * (p.a * shift.x + p.b * shift.y),
+            ..*p
+        };
+        // Node k (φ = 2πk) is thumbnail cell 2k, bitmap cell R·(2k − origin cell).
+        let r = found.orientation.matrix();
+        let o = found.origin_cell;
+        let reach = template.half[0].max(template.half[1]) / 2 + 1;
+        let (c1, c2) = (o[0].div_euclid(2), o[1].div_euclid(2));
+        let mask = NodeMask::from_fn(
+            c1 - reach..=c1 + reach,
+            c2 - reach..=c2 + reach,
+            |k1, k2| {
+                let d = [2 * k1 - o[0], 2 * k2 - o[1]];
+                template.is_regular_dot([
+                    r[0][0] * d[0] + r[0][1] * d[1],
+                    r[1][0] * d[0] + r[1][1] * d[1],
+                ])
+            },
+        );
+        let fit = fit_dot_field(image, planes.map(|p| moved(&p, 1.0)), &mask)?;
+        Some((fit.planes.map(|p| moved(&p, -1.0)), fit))
     }
 
     /// Why a match is not reported (`None`: it is).
@@ -989,7 +1066,10 @@ impl StampDetector {
             polarity: self.params.polarity.unwrap_or_default(),
             window_center,
             window_size,
+            phase_std: analysis.phase_std,
             analysis,
+            field: None,
+            yaw_std: None,
         })
     }
 

@@ -1,0 +1,1200 @@
+//! Layout-aware, robust fit of a marker's whole dot field (docs/design.md#field-fit).
+//!
+//! The phase engine measures a window that must hold nothing but dots, so on a decoded marker
+//! it sees a fraction of the dot field, under an apodising window. Once a coarse step knows the
+//! layout, every pixel of the regular dot field can be used instead:
+//!
+//! * **Which pixels.** The caller marks the *regular* lattice nodes: dots of the layout whose
+//!   3 × 3 neighbourhood is all plain dots, so that the image around them is exactly periodic
+//!   (no finder, frame, missing ID dot or marker edge within one period). Each pixel gets the
+//!   weight `w_L = Σ M(k)·b(u₁ − k₁)·b(u₂ − k₂)` over its four surrounding nodes, `u = φ/2π` its
+//!   lattice coordinates, `M(k) ∈ {0, 1}` the node mask, `b(t) = cos²(πt/2)` on `|t| < 1`: a
+//!   partition of unity, so `w_L = 1` inside the field and falls smoothly to 0 within one period
+//!   of its edge. The Fourier transform of `b` vanishes at every non-zero integer, so the dots'
+//!   harmonics stay exactly orthogonal to each other under any such sum of node kernels.
+//! * **Which model.** `g = μ + μ_X·X + μ_Y·Y + Σ_l (B_l + E_l·X + F_l·Y)·cos φ_l +
+//!   (1 + η_X·X + η_Y·Y)·Σ_h Re(A_h·e^{i h·φ})`: background, fundamental amplitudes and the
+//!   harmonics' gain with linear trends (illumination), and every dot harmonic `h` up to order
+//!   [`MAX_ORDER`] per axis whose amplitude reaches [`MIN_HARMONIC`] of the fundamental, with a
+//!   free complex amplitude (no assumption on the dot's shape). Modelling the harmonics removes
+//!   their leakage into the plane slopes without any window, and lets the slopes use their
+//!   information: every pixel of the field counts fully (a flat aperture instead of the
+//!   engine's sine-cubed one, κ = √12 instead of 4.85). The offsets `c_l` are those of the
+//!   fundamentals (phase 0 on the dot centres, as the engine's); the harmonics' own phases are
+//!   free, so they inform the slopes but not the offsets.
+//! * **How.** Gauss–Newton: each iteration is one sweep that solves the 17 unknowns
+//!   `μ, μ_X, μ_Y, B_l, E_l, F_l, η_X, η_Y` and the plane corrections
+//!   `δφ_l = α_l·X + β_l·Y + γ_l` in one weighted linear least-squares step, and corrects the
+//!   harmonics by demodulating the weighted residual (exact while they stay orthogonal).
+//! * **Robust weights.** A pixel's weight is `w_L` with each node's term multiplied by the
+//!   node's cell weight (still a sum of node kernels, so still orthogonal), times Tukey's
+//!   biweight `(1 − (r/c)²)²` of its residual. A cell (one period around a node) whose RMS
+//!   residual exceeds twice the median cell's loses weight, none is left beyond 4×: dust, hair
+//!   and scratches spoil whole cells, while the dots' fine model error is in every cell alike.
+//!   The biweight's cut-off is `c = max(4.685·σ, B)`, `σ` = 1.4826 × the median absolute
+//!   residual (95 % efficiency on Gaussian noise), at least the fundamental's amplitude `B`, so
+//!   that only gross departures count as outliers on clean images. The first iteration is not
+//!   weighted; the second and third set the weights; the third's are then frozen, so the last
+//!   iterations solve one fixed weighted least-squares problem at Gauss–Newton's quadratic
+//!   rate (reweighting each time, as plain IRLS does, converges linearly).
+//!
+//! **Breakdown.** The scales are medians: up to half of the cells (or pixels) may be outliers.
+//! Both weights redescend to 0, so a gross outlier has no influence at all. Like every
+//! redescending M-estimator, the fit reaches the right solution when it starts in its basin:
+//! the start (the window's planes) must be within a fraction of a period everywhere in the
+//! field, which the coarse step guarantees, and is refused beyond a quarter period.
+//!
+//! `X, Y` are image-frame coordinates relative to the field's weighted centre, divided by its
+//! half-size (conditioning, and `Σw·X = 0` decouples the harmonics' phases from their ramps).
+//! Cost: one sweep per iteration (~40 multiply-adds per harmonic and 300 for the normal
+//! equations per pixel), 4–8 iterations; AVX2 when the CPU has it.
+
+use super::plane::PhasePlane;
+use crate::grey_image::GreyImage;
+use crate::order_stats::median;
+use nalgebra::{Matrix6, SMatrix, SVector, Vector2, Vector6};
+use num_complex::Complex64;
+use std::f64::consts::{PI, TAU};
+
+/// Highest harmonic order modelled along each lattice axis: the dots' harmonics
+/// `e^{i(h₁φ₁ + h₂φ₂)}` with `|h₁|, |h₂| ≤ MAX_ORDER` (sharp, pixel-integrated dots have ~15 %
+/// of the fundamental up to order 3).
+const MAX_ORDER: usize = 5;
+/// Harmonics whose amplitude is below this fraction of the fundamental are left out of the
+/// iterations (their leakage into the slopes is then below ~2e-5 rad of phase at the field's
+/// edge): blurred images keep a few, sharp ones a few dozen.
+const MIN_HARMONIC: f64 = 1e-3;
+/// Tukey biweight tuning constant, in robust residual standard deviations (95 % efficiency
+/// on Gaussian noise).
+const TUKEY: f64 = 4.685;
+/// Smallest Tukey cut-off, in mean fundamental amplitudes `B`: a pixel is a gross outlier
+/// only when it departs from the model by more than the fundamental's amplitude (a quarter to
+/// a third of the dot contrast). Smaller departures are model detail (dot edges that vary
+/// from dot to dot, illumination), which the cells' weights judge as a whole.
+const MIN_CUTOFF: f64 = 1.0;
+/// A cell (one lattice period around a node) whose RMS residual exceeds this many times the
+/// median cell's starts losing weight (dust, hair, scratch over it) …
+const CELL_FULL: f64 = 2.0;
+/// … and has none beyond this many (cos² taper in between). For pure noise a cell of `p²`
+/// pixels has an RMS within ~`1/√(2p²)` of the median: never rejected.
+const CELL_ZERO: f64 = 4.0;
+/// Iterations that update the robust weights; later ones keep them, so the fit converges to
+/// the solution of one fixed weighted problem.
+const ROBUST_ITERATIONS: usize = 2;
+/// Robust standard deviation of a Gaussian from its median absolute value.
+const MAD_TO_SIGMA: f64 = 1.4826;
+/// Iteration bounds: at least this many (the first is not reweighted, the last
+/// `MIN_ITERATIONS − ROBUST_ITERATIONS` keep the final weights) …
+const MIN_ITERATIONS: usize = ROBUST_ITERATIONS + 1;
+/// … and at most this many.
+const MAX_ITERATIONS: usize = 10;
+/// Converged when no plane moves by more than this anywhere in the field, radians (1.6e-6 of
+/// a period; the iterations contract by ~5×, so the remaining error is a quarter of that).
+const CONVERGED: f64 = 1e-5;
+/// The fit is refused when it moves a plane by more than this anywhere in the field, radians: the
+/// start was not in the basin (or the field is not this grid).
+const MAX_CORRECTION: f64 = PI / 2.0;
+/// Fewest regular nodes a field must have (a 4 × 4 block of dots).
+const MIN_NODES: usize = 16;
+/// The field is binned 2 × 2 while its period stays at least this many binned pixels (4×
+/// fewer pixels to sweep per level): the fundamental loses < 5 % of its amplitude to the box
+/// filter, and the harmonics up to the second stay below Nyquist (higher ones, weak on any
+/// but the sharpest dots, are then left out).
+const MIN_BINNED_PERIOD: f64 = 6.0;
+/// Largest binning factor.
+const MAX_BINNING: usize = 4;
+/// Two components of the model must differ by at least this many cycles per field side to be
+/// told apart.
+const MIN_SEPARATION_CYCLES: f64 = 2.0;
+/// Linear unknowns: μ, μ_X, μ_Y, then (B, E, F) of each fundamental, then the harmonics'
+/// illumination gradient (η_X, η_Y).
+const LINEAR: usize = 11;
+/// Most harmonics modelled: `((2·MAX_ORDER + 1)² − 1)/2 − 2`.
+const MAX_HARMONICS: usize = ((2 * MAX_ORDER + 1) * (2 * MAX_ORDER + 1) - 1) / 2 - 2;
+/// All unknowns: the linear ones and (α, β, γ) of each plane.
+const UNKNOWNS: usize = LINEAR + 6;
+
+/// The regular lattice nodes of a marker: node `(k₁, k₂)` is the image point where
+/// `φ₁ = 2πk₁` and `φ₂ = 2πk₂` (a dot centre), `φ_l` the planes given to [`fit_dot_field`].
+#[derive(Clone, Debug)]
+pub struct NodeMask {
+    first: (i64, i64),
+    dims: (usize, usize),
+    regular: Vec<bool>,
+}
+
+impl NodeMask {
+    /// The nodes `k₁ ∈ k1`, `k₂ ∈ k2` for which `regular(k₁, k₂)` holds; every other node is
+    /// irregular.
+    pub fn from_fn(
+        k1: std::ops::RangeInclusive<i64>,
+        k2: std::ops::RangeInclusive<i64>,
+        regular: impl Fn(i64, i64) -> bool,
+    ) -> Self {
+        let count = |r: &std::ops::RangeInclusive<i64>| (r.end() - r.start() + 1).max(0) as usize;
+        let dims = (count(&k1), count(&k2));
+        let mut cells = Vec::with_capacity(dims.0 * dims.1);
+        for a in k1.clone() {
+            for b in k2.clone() {
+                cells.push(regular(a, b));
+            }
+        }
+        NodeMask {
+            first: (*k1.start(), *k2.start()),
+            dims,
+            regular: cells,
+        }
+    }
+
+    /// Whether node `(k1, k2)` is regular.
+    pub fn get(&self, k1: i64, k2: i64) -> bool {
+        self.index(k1, k2).is_some_and(|i| self.regular[i])
+    }
+
+    /// Index of node `(k1, k2)` in per-node arrays of [`NodeMask::len`] entries.
+    fn index(&self, k1: i64, k2: i64) -> Option<usize> {
+        let (i, j) = (k1 - self.first.0, k2 - self.first.1);
+        (i >= 0 && j >= 0 && (i as usize) < self.dims.0 && (j as usize) < self.dims.1)
+            .then(|| i as usize * self.dims.1 + j as usize)
+    }
+
+    /// Number of nodes (regular or not) the mask spans.
+    fn len(&self) -> usize {
+        self.regular.len()
+    }
+
+    /// Number of regular nodes.
+    pub fn count(&self) -> usize {
+        self.regular.iter().filter(|&&r| r).count()
+    }
+
+    /// Layout weight of lattice coordinates `u` (see the module doc), in `[0, 1]`, and the same
+    /// with each node's term multiplied by its robust weight `nodes[index]` (1 where `nodes`
+    /// has no entry): still a sum of node kernels, so the harmonics stay orthogonal under it.
+    #[inline(always)]
+    fn weight(&self, u: [f64; 2], cos_pi_u: [f64; 2], nodes: &[f64]) -> (f64, f64) {
+        let (f1, f2) = (u[0].floor(), u[1].floor());
+        let (k1, k2) = (f1 as i64, f2 as i64);
+        // b(t) = cos²(πt/2) = (1 + cos πt)/2 at t = u − k, cos πt = (−1)^k·cos πu.
+        let partition = |k: i64, c: f64| {
+            let b = 0.5 + 0.5 * if k % 2 == 0 { c } else { -c };
+            [b, 1.0 - b]
+        };
+        let (b1, b2) = (partition(k1, cos_pi_u[0]), partition(k2, cos_pi_u[1]));
+        let (mut layout, mut robust) = (0.0, 0.0);
+        for (i, wi) in b1.iter().enumerate() {
+            for (j, wj) in b2.iter().enumerate() {
+                let Some(index) = self.index(k1 + i as i64, k2 + j as i64) else {
+                    continue;
+                };
+                if self.regular[index] {
+                    let w = wi * wj;
+                    layout += w;
+                    robust += w * nodes.get(index).copied().unwrap_or(1.0);
+                }
+            }
+        }
+        (layout, robust)
+    }
+}
+
+/// Result of [`fit_dot_field`].
+#[derive(Clone, Debug)]
+pub struct FieldFit {
+    /// The refined planes (image frame, same node numbering as the start).
+    pub planes: [PhasePlane; 2],
+    /// Amplitude `|B_l|` of each fundamental at the field's centre, image intensity units.
+    pub amplitudes: [f64; 2],
+    /// Robust standard deviation of the residual (1.4826 × median |r|), intensity units: the
+    /// noise level the uncertainty is computed from (white noise and model error).
+    pub residual_std: f64,
+    /// Fraction of the field's layout weight that the robust weights kept, `[0, 1]`.
+    pub inlier_fraction: f64,
+    /// Pixels with a non-zero layout weight.
+    pub pixels: usize,
+    /// Gauss–Newton iterations run.
+    pub iterations: usize,
+    /// Covariance of the last correction `(α₁, β₁, γ₁, α₂, β₂, γ₂)`, radians².
+    covariance: Matrix6<f64>,
+    /// Field centre `(x₀, y₀)` (image frame) and half-size `s` of the normalised coordinates.
+    frame: (f64, f64, f64),
+}
+
+impl FieldFit {
+    /// Standard deviation of each plane's phase at the image-frame point `(x, y)`, radians.
+    pub fn phase_std_at(&self, x: f64, y: f64) -> [f64; 2] {
+        let (x0, y0, s) = self.frame;
+        let v = [(x - x0) / s, (y - y0) / s, 1.0];
+        [0, 1].map(|l| {
+            let mut var = 0.0;
+            for (i, vi) in v.iter().enumerate() {
+                for (j, vj) in v.iter().enumerate() {
+                    var += vi * vj * self.covariance[(3 * l + i, 3 * l + j)];
+                }
+            }
+            var.max(0.0).sqrt()
+        })
+    }
+
+    /// Standard deviation of the mean gradient direction `(θ₁ + θ₂)/2` of the two planes,
+    /// `θ_l = atan2(b_l, a_l)`, radians (the orientation of a marker whose axes are the planes).
+    pub fn mean_direction_std(&self) -> f64 {
+        let s = self.frame.2;
+        let mut g = Vector6::zeros();
+        for (l, p) in self.planes.iter().enumerate() {
+            let k2 = p.a * p.a + p.b * p.b;
+            if k2 > 0.0 {
+                // dθ = (a·db − b·da)/|k|², da = dα/s, db = dβ/s; halved for the mean.
+                g[3 * l] = -0.5 * p.b / (s * k2);
+                g[3 * l + 1] = 0.5 * p.a / (s * k2);
+            }
+        }
+        (g.transpose() * self.covariance * g)[(0, 0)]
+            .max(0.0)
+            .sqrt()
+    }
+}
+
+/// The harmonics `(h₁, h₂)` of order ≤ [`MAX_ORDER`] other than the fundamentals, one of each
+/// `±h` pair (`h₁ > 0`, or `h₁ = 0 < h₂`).
+fn all_harmonics() -> Vec<(i32, i32)> {
+    let m = MAX_ORDER as i32;
+    let mut list = Vec::new();
+    for h1 in 0..=m {
+        for h2 in -m..=m {
+            if (h1 > 0 || h2 > 0) && (h1, h2) != (1, 0) && (h1, h2) != (0, 1) {
+                list.push((h1, h2));
+            }
+        }
+    }
+    list
+}
+
+/// The harmonics that can be told apart on the pixel grid over a field of `side` pixels, lower
+/// orders first: a harmonic above the Nyquist frequency appears at its wave vector folded
+/// into the Nyquist square (aliased), and is kept only while that stays
+/// [`MIN_SEPARATION_CYCLES`] per field from DC, both fundamentals and every harmonic kept
+/// before it (and their opposites: the image is real). On a 4-px grid, say, the third
+/// harmonic folds onto the fundamental and is left out; on a rotated grid most aliased
+/// harmonics stay apart and are modelled.
+fn resolvable_harmonics(planes: &[PhasePlane; 2], side: f64) -> Vec<(i32, i32)> {
+    let mut candidates = all_harmonics();
+    candidates.sort_by_key(|&(a, b)| (a.abs().max(b.abs()), a.abs() + b.abs()));
+    let fold = |v: f64| v - TAU * (v / TAU).round();
+    let wave = |(h1, h2): (i32, i32)| {
+        let (h1, h2) = (h1 as f64, h2 as f64);
+        [
+            fold(h1 * planes[0].a + h2 * planes[1].a),
+            fold(h1 * planes[0].b + h2 * planes[1].b),
+        ]
+    };
+    let separation = MIN_SEPARATION_CYCLES * TAU / side.max(1.0);
+    let mut taken = vec![[0.0, 0.0], wave((1, 0)), wave((0, 1))];
+    let mut kept = Vec::new();
+    for h in candidates {
+        let k = wave(h);
+        let near = |q: &[f64; 2]| {
+            [1.0, -1.0]
+                .iter()
+                .any(|&sign| fold(k[0] - sign * q[0]).hypot(fold(k[1] - sign * q[1])) < separation)
+        };
+        if !taken.iter().any(near) {
+            taken.push(k);
+            kept.push(h);
+        }
+    }
+    kept
+}
+
+/// The fit's state between sweeps.
+struct Model {
+    planes: [PhasePlane; 2],
+    /// μ, μ_X, μ_Y, B₁, E₁, F₁, B₂, E₂, F₂, η_X, η_Y.
+    linear: SVector<f64, LINEAR>,
+    /// The modelled harmonics and their complex amplitudes.
+    harmonics: Vec<((i32, i32), Complex64)>,
+    /// Tukey cut-off `c·σ`, intensity units; `None` before the first residuals.
+    cutoff: Option<f64>,
+    /// Robust weight of each cell (per node of the mask); empty before the first residuals.
+    cells: Vec<f64>,
+    /// Tukey weight of each pixel of the box (row-major), frozen after the robust iterations:
+    /// the last iterations then solve one fixed weighted least-squares problem, at the
+    /// quadratic rate of Gauss–Newton (reweighting every pixel each time, as IRLS does,
+    /// converges only linearly). Empty while the weights still move.
+    frozen: Vec<f32>,
+}
+
+/// One pixel of the field as the sweeps see it.
+struct Pixel {
+    /// Normalised coordinates.
+    xn: f64,
+    yn: f64,
+    g: f64,
+    /// Layout weight `w_L`.
+    layout: f64,
+    /// Layout weight with the nodes' robust weights.
+    w: f64,
+    /// `e^{iφ_l}`.
+    z: [Complex64; 2],
+    /// Index of the nearest node (the pixel's cell) in per-node arrays, if inside the mask.
+    cell: Option<usize>,
+    /// Columns since the previous pixel visited in this row; 0 for the first of the row.
+    advance: usize,
+    /// Row-major index of the pixel in the field's box.
+    index: usize,
+}
+
+/// The modelled harmonics' exponentials `e^{ih·φ}` at the current pixel, advanced column by
+/// column along a row (one complex product per harmonic instead of a power product), with
+/// their amplitudes and demodulation sums; structure of arrays, so the loops vectorise.
+struct HarmonicBank {
+    n: usize,
+    orders: [(i32, i32); MAX_HARMONICS],
+    re: [f64; MAX_HARMONICS],
+    im: [f64; MAX_HARMONICS],
+    step_re: [f64; MAX_HARMONICS],
+    step_im: [f64; MAX_HARMONICS],
+    amp_re: [f64; MAX_HARMONICS],
+    amp_im: [f64; MAX_HARMONICS],
+    h1: [f64; MAX_HARMONICS],
+    h2: [f64; MAX_HARMONICS],
+    /// `Σ ψ·e^{−ih·φ}` (re, im).
+    sum_re: [f64; MAX_HARMONICS],
+    sum_im: [f64; MAX_HARMONICS],
+}
+
+impl HarmonicBank {
+    /// The bank of `harmonics` (orders and amplitudes) for `planes`.
+    fn new(harmonics: &[((i32, i32), Complex64)], planes: &[PhasePlane; 2]) -> Self {
+        let zero = [0.0; MAX_HARMONICS];
+        let mut bank = HarmonicBank {
+            n: harmonics.len().min(MAX_HARMONICS),
+            orders: [(0, 0); MAX_HARMONICS],
+            re: zero,
+            im: zero,
+            step_re: zero,
+            step_im: zero,
+            amp_re: zero,
+            amp_im: zero,
+            h1: zero,
+            h2: zero,
+            sum_re: zero,
+            sum_im: zero,
+        };
+        for (k, &((h1, h2), a)) in harmonics.iter().take(MAX_HARMONICS).enumerate() {
+            let step =
+                Complex64::from_polar(1.0, h1 as f64 * planes[0].a + h2 as f64 * planes[1].a);
+            bank.orders[k] = (h1, h2);
+            bank.step_re[k] = step.re;
+            bank.step_im[k] = step.im;
+            bank.amp_re[k] = a.re;
+            bank.amp_im[k] = a.im;
+            bank.h1[k] = h1 as f64;
+            bank.h2[k] = h2 as f64;
+        }
+        bank
+    }
+
+    /// Exponentials at a pixel whose `e^{iφ_l}` is `z` (first pixel of a row).
+    #[inline(always)]
+    fn seed(&mut self, z: &[Complex64; 2]) {
+        let powers = powers(z);
+        for k in 0..self.n {
+            let (h1, h2) = self.orders[k];
+            let e = harmonic(&powers, h1, h2);
+            self.re[k] = e.re;
+            self.im[k] = e.im;
+        }
+    }
+
+    /// Exponentials `columns` pixels further along the row.
+    #[inline(always)]
+    fn advance(&mut self, columns: usize) {
+        let n = self.n;
+        for _ in 0..columns {
+            for k in 0..n {
+                let (r, i) = (self.re[k], self.im[k]);
+                self.re[k] = r * self.step_re[k] - i * self.step_im[k];
+                self.im[k] = r * self.step_im[k] + i * self.step_re[k];
+            }
+        }
+    }
+
+    /// `H = Σ_h Re(A_h e^{ih·φ})` and its derivatives along `φ₁`, `φ₂`
+    /// (`d/dφ_l Re(A e^{ih·φ}) = −h_l·Im(A e^{ih·φ})`).
+    #[inline(always)]
+    fn evaluate(&self) -> (f64, [f64; 2]) {
+        // Four independent partial sums per quantity (the unused entries have A = 0).
+        const LANES: usize = 4;
+        let (mut value, mut s1, mut s2) = ([0.0; LANES], [0.0; LANES], [0.0; LANES]);
+        let chunks = self.n.div_ceil(LANES).min(MAX_HARMONICS / LANES + 1);
+        for c in 0..chunks {
+            for lane in 0..LANES {
+                let k = (c * LANES + lane).min(MAX_HARMONICS - 1);
+                let live = if c * LANES + lane < self.n { 1.0 } else { 0.0 };
+                let (er, ei) = (self.re[k], self.im[k]);
+                let (ar, ai) = (live * self.amp_re[k], live * self.amp_im[k]);
+                value[lane] += ar * er - ai * ei;
+                let v_im = ar * ei + ai * er;
+                s1[lane] -= self.h1[k] * v_im;
+                s2[lane] -= self.h2[k] * v_im;
+            }
+        }
+        let total = |v: [f64; LANES]| (v[0] + v[1]) + (v[2] + v[3]);
+        (total(value), [total(s1), total(s2)])
+    }
+
+    /// Adds `ψ·e^{−ih·φ}` to the demodulation sums.
+    #[inline(always)]
+    fn demodulate(&mut self, psi: f64) {
+        for k in 0..self.n {
+            self.sum_re[k] += psi * self.re[k];
+            self.sum_im[k] -= psi * self.im[k];
+        }
+    }
+
+    /// The demodulation sums as complex numbers, in the harmonics' order.
+    fn sums(&self) -> impl Iterator<Item = Complex64> + '_ {
+        (0..self.n).map(|k| Complex64::new(self.sum_re[k], self.sum_im[k]))
+    }
+}
+
+impl Model {
+    /// The harmonics' illumination gain `1 + η_X·X + η_Y·Y` at a pixel.
+    fn gain(&self, p: &Pixel) -> f64 {
+        1.0 + self.linear[9] * p.xn + self.linear[10] * p.yn
+    }
+
+    /// Background plus fundamentals at a pixel (the linear part of the model).
+    fn linear_at(&self, p: &Pixel) -> f64 {
+        let m = &self.linear;
+        let mut v = m[0] + m[1] * p.xn + m[2] * p.yn;
+        for l in 0..2 {
+            v += (m[3 + 3 * l] + m[4 + 3 * l] * p.xn + m[5 + 3 * l] * p.yn) * p.z[l].re;
+        }
+        v
+    }
+
+    /// Tukey weight `(1 − (r/c)²)²` of a pixel's residual `r` (1 before the first
+    /// residuals).
+    fn robust(&self, r: f64) -> f64 {
+        match self.cutoff {
+            None => 1.0,
+            Some(c) => {
+                let t = r / c;
+                if t.abs() < 1.0 {
+                    let q = 1.0 - t * t;
+                    q * q
+                } else {
+                    0.0
+                }
+            }
+        }
+    }
+
+    /// Mean fundamental amplitude.
+    fn contrast(&self) -> f64 {
+        0.5 * (self.linear[3].abs() + self.linear[6].abs())
+    }
+}
+
+/// `e^{ikφ_l}` for `k = 0..=MAX_ORDER`, per lobe.
+type Powers = [[Complex64; MAX_ORDER + 1]; 2];
+
+fn powers(z: &[Complex64; 2]) -> Powers {
+    z.map(|zl| {
+        let mut p = [Complex64::new(1.0, 0.0); MAX_ORDER + 1];
+        for k in 1..=MAX_ORDER {
+            p[k] = p[k - 1] * zl;
+        }
+        p
+    })
+}
+
+/// `e^{i(h₁φ₁ + h₂φ₂)}` from the powers (`|h_l| ≤ MAX_ORDER`).
+fn harmonic(p: &Powers, h1: i32, h2: i32) -> Complex64 {
+    let pick = |l: usize, h: i32| {
+        let v = p[l][h.unsigned_abs() as usize];
+        if h < 0 {
+            v.conj()
+        } else {
+            v
+        }
+    };
+    pick(0, h1) * pick(1, h2)
+}
+
+/// The field's pixel box: pixels within one period of the regular nodes, clipped to the image.
+struct FieldBox {
+    cols: std::ops::Range<usize>,
+    rows: std::ops::Range<usize>,
+    /// Image-frame origin `(C div 2, R div 2)`.
+    center: (f64, f64),
+    /// Normalisation `(x₀, y₀, s)`.
+    frame: (f64, f64, f64),
+}
+
+impl FieldBox {
+    fn new(image: &GreyImage, planes: &[PhasePlane; 2], mask: &NodeMask) -> Option<Self> {
+        let m = nalgebra::Matrix2::new(planes[0].a, planes[0].b, planes[1].a, planes[1].b);
+        let inverse = m.try_inverse()?;
+        let (mut lo, mut hi) = (
+            Vector2::repeat(f64::INFINITY),
+            Vector2::repeat(f64::NEG_INFINITY),
+        );
+        let (a0, b0) = mask.first;
+        let (a1, b1) = (a0 + mask.dims.0 as i64, b0 + mask.dims.1 as i64);
+        for (k1, k2) in [(a0 - 1, b0 - 1), (a0 - 1, b1), (a1, b0 - 1), (a1, b1)] {
+            let phase = Vector2::new(TAU * k1 as f64 - planes[0].c, TAU * k2 as f64 - planes[1].c);
+            let p = inverse * phase;
+            lo = lo.inf(&p);
+            hi = hi.sup(&p);
+        }
+        let (cx, cy) = image.center();
+        let (cx, cy) = (cx as f64, cy as f64);
+        let clip = |v: f64, n: usize| (v.max(0.0).min(n as f64)) as usize;
+        if !(lo.iter().chain(hi.iter()).all(|v| v.is_finite())) {
+            return None;
+        }
+        let cols =
+            clip((lo.x + cx).floor(), image.width())..clip((hi.x + cx).ceil() + 1.0, image.width());
+        let rows = clip((lo.y + cy).floor(), image.height())
+            ..clip((hi.y + cy).ceil() + 1.0, image.height());
+        if cols.is_empty() || rows.is_empty() {
+            return None;
+        }
+        let s = (cols.len().max(rows.len()) as f64 / 2.0).max(1.0);
+        let mut field = FieldBox {
+            cols,
+            rows,
+            center: (cx, cy),
+            frame: (0.0, 0.0, s),
+        };
+        // Centre the normalised coordinates on the field's layout weight (Σw·X = Σw·Y = 0).
+        let (mut sw, mut sx, mut sy) = (0.0, 0.0, 0.0);
+        for p in field.pixels(image, planes, mask, &[]) {
+            sw += p.w;
+            sx += p.w * p.xn;
+            sy += p.w * p.yn;
+        }
+        if sw <= 0.0 {
+            return None;
+        }
+        field.frame = (s * sx / sw, s * sy / sw, s);
+        Some(field)
+    }
+
+    /// The pixels of the field with a non-zero layout weight, row by row; `nodes` holds the
+    /// nodes' robust weights (empty: all 1).
+    fn pixels<'a>(
+        &'a self,
+        image: &'a GreyImage,
+        planes: &[PhasePlane; 2],
+        mask: &'a NodeMask,
+        nodes: &'a [f64],
+    ) -> FieldPixels<'a> {
+        FieldPixels {
+            field: self,
+            pixels: image.pixels(),
+            width: image.width(),
+            planes: *planes,
+            mask,
+            nodes,
+            step: planes.map(|p| Complex64::from_polar(1.0, p.a)),
+            half_step: planes.map(|p| Complex64::from_polar(1.0, 0.5 * p.a)),
+            half: [Complex64::default(); 2],
+            row: self.rows.start,
+            col: self.cols.start,
+            fresh_row: true,
+            z: [Complex64::default(); 2],
+            last: None,
+        }
+    }
+}
+
+/// Iterator over the pixels of a [`FieldBox`] (a plain loop, so that it inlines into the
+/// vectorised fit; closures would not inherit its target features).
+struct FieldPixels<'a> {
+    field: &'a FieldBox,
+    pixels: &'a [f32],
+    width: usize,
+    planes: [PhasePlane; 2],
+    mask: &'a NodeMask,
+    nodes: &'a [f64],
+    /// `e^{ia_l}`: one column's phase step.
+    step: [Complex64; 2],
+    /// `e^{ia_l/2}`.
+    half_step: [Complex64; 2],
+    /// `e^{iφ_l/2}` at `(col, row)`: `cos πu_l` for the layout weight.
+    half: [Complex64; 2],
+    row: usize,
+    /// Next column.
+    col: usize,
+    /// `z` must be computed afresh (start of a row).
+    fresh_row: bool,
+    /// `e^{iφ_l}` at `(col, row)`.
+    z: [Complex64; 2],
+    /// Last column visited in this row.
+    last: Option<usize>,
+}
+
+impl Iterator for FieldPixels<'_> {
+    type Item = Pixel;
+
+    #[inline(always)]
+    fn next(&mut self) -> Option<Pixel> {
+        let f = self.field;
+        let (x0, y0, s) = f.frame;
+        loop {
+            if self.col >= f.cols.end {
+                self.row += 1;
+                self.col = f.cols.start;
+                self.fresh_row = true;
+            }
+            if self.row >= f.rows.end {
+                return None;
+            }
+            if self.fresh_row {
+                self.fresh_row = false;
+                self.last = None;
+                let y = self.row as f64 - f.center.1;
+                let x = self.col as f64 - f.center.0;
+                self.z = self.planes.map(|p| Complex64::from_polar(1.0, p.at(x, y)));
+                self.half = self
+                    .planes
+                    .map(|p| Complex64::from_polar(1.0, 0.5 * p.at(x, y)));
+            }
+            let (row, col) = (self.row, self.col);
+            let x = col as f64 - f.center.0;
+            let y = row as f64 - f.center.1;
+            let (z, half) = (self.z, self.half);
+            self.col += 1;
+            self.z = [z[0] * self.step[0], z[1] * self.step[1]];
+            self.half = [half[0] * self.half_step[0], half[1] * self.half_step[1]];
+            let u = [self.planes[0].at(x, y) / TAU, self.planes[1].at(x, y) / TAU];
+            let (layout, w) = self.mask.weight(u, [half[0].re, half[1].re], self.nodes);
+            let g = self
+                .pixels
+                .get(row * self.width + col)
+                .copied()
+                .unwrap_or(f32::NAN) as f64;
+            if layout > 0.0 && g.is_finite() {
+                let advance = self.last.map_or(0, |l| col - l);
+                self.last = Some(col);
+                return Some(Pixel {
+                    xn: (x - x0) / s,
+                    yn: (y - y0) / s,
+                    g,
+                    layout,
+                    w,
+                    z,
+                    cell: self.mask.index(u[0].round() as i64, u[1].round() as i64),
+                    advance,
+                    index: (row - f.rows.start) * f.cols.len() + (col - f.cols.start),
+                });
+            }
+        }
+    }
+}
+
+/// Refines `start` (image frame, docs/design.md#frames) on every pixel of the regular dot
+/// field described by `mask`, robustly (see the module doc). `None` when the field has fewer
+/// than 16 regular nodes, the normal equations are singular, the iterations do not converge, or the planes would move by more than a quarter
+/// period somewhere in the field (the start was not this grid's).
+pub fn fit_dot_field(
+    image: &GreyImage,
+    start: [PhasePlane; 2],
+    mask: &NodeMask,
+) -> Option<FieldFit> {
+    if mask.count() < MIN_NODES {
+        return None;
+    }
+    // The field's box, binned while the period allows (docs/design.md#field-fit).
+    let field = FieldBox::new(image, &start, mask)?;
+    let period = start
+        .iter()
+        .map(|p| p.pixel_period())
+        .fold(f64::INFINITY, f64::min);
+    let mut factor = 1usize;
+    while factor < MAX_BINNING && period / (2 * factor) as f64 >= MIN_BINNED_PERIOD {
+        factor *= 2;
+    }
+    let (width, height) = (
+        field.cols.len() / factor * factor,
+        field.rows.len() / factor * factor,
+    );
+    let mut sub = image
+        .crop(field.cols.start, field.rows.start, width, height)
+        .ok()?;
+    let mut scale = 1;
+    while scale < factor {
+        let (rb, cb) = (sub.height() / 2, sub.width() / 2);
+        let mut binned = Vec::new();
+        crate::grey_image::bin_2x2(sub.pixels(), sub.width(), rb, cb, &mut binned);
+        sub = GreyImage::new(cb, rb, binned).ok()?;
+        scale *= 2;
+    }
+    // Image-frame x of sub-image pixel i (frame x_s = i − w_s div 2): the centre of the
+    // full-resolution pixels it covers, x = f·x_s + o.
+    let f = factor as f64;
+    let (icx, icy) = image.center();
+    let offset = [
+        f * (sub.width() / 2) as f64 + field.cols.start as f64 + (f - 1.0) / 2.0 - icx as f64,
+        f * (sub.height() / 2) as f64 + field.rows.start as f64 + (f - 1.0) / 2.0 - icy as f64,
+    ];
+    let to_sub = |p: &PhasePlane| PhasePlane {
+        a: f * p.a,
+        b: f * p.b,
+        c: p.c + p.a * offset[0] + p.b * offset[1],
+    };
+    let mut fit = fit_dot_field_dispatch(&sub, start.map(|p| to_sub(&p)), mask)?;
+    fit.planes = fit.planes.map(|p| {
+        let (a, b) = (p.a / f, p.b / f);
+        PhasePlane {
+            a,
+            b,
+            c: p.c - a * offset[0] - b * offset[1],
+        }
+    });
+    let (x0, y0, s) = fit.frame;
+    fit.frame = (f * x0 + offset[0], f * y0 + offset[1], f * s);
+    Some(fit)
+}
+
+/// [`fit_dot_field`] on an image (the field's box, maybe binned), vectorised where the CPU
+/// allows.
+fn fit_dot_field_dispatch(
+    image: &GreyImage,
+    start: [PhasePlane; 2],
+    mask: &NodeMask,
+) -> Option<FieldFit> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+        {
+            // SAFETY: the CPU supports the features the function is compiled for.
+            return unsafe { fit_dot_field_avx2(image, start, mask) };
+        }
+    }
+    fit_dot_field_generic(image, start, mask)
+}
+
+/// [`fit_dot_field`] compiled for AVX2 and FMA (the same arithmetic on wider vectors).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn fit_dot_field_avx2(
+    image: &GreyImage,
+    start: [PhasePlane; 2],
+    mask: &NodeMask,
+) -> Option<FieldFit> {
+    fit_dot_field_generic(image, start, mask)
+}
+
+#[inline(always)]
+fn fit_dot_field_generic(
+    image: &GreyImage,
+    start: [PhasePlane; 2],
+    mask: &NodeMask,
+) -> Option<FieldFit> {
+    let field = FieldBox::new(image, &start, mask)?;
+    let (x0, y0, s) = field.frame;
+    let mut model = first_model(image, &field, mask, start)?;
+    let mut total_shift = [0.0f64; 2];
+    for iteration in 1..=MAX_ITERATIONS {
+        let step = iterate(
+            image,
+            &field,
+            mask,
+            &model,
+            iteration == ROBUST_ITERATIONS + 1,
+        )?;
+        let mut largest = 0.0f64;
+        for (l, (p, shift)) in model.planes.iter_mut().zip(&mut total_shift).enumerate() {
+            let d = [
+                step.delta[3 * l],
+                step.delta[3 * l + 1],
+                step.delta[3 * l + 2],
+            ];
+            p.a += d[0] / s;
+            p.b += d[1] / s;
+            p.c += d[2] - d[0] * x0 / s - d[1] * y0 / s;
+            let moved = d[0].abs() + d[1].abs() + d[2].abs();
+            largest = largest.max(moved);
+            *shift += moved;
+        }
+        // Refused beyond the limit, and when a step was not a number.
+        if total_shift
+            .iter()
+            .any(|t| t.is_nan() || *t >= MAX_CORRECTION)
+        {
+            return None;
+        }
+        model.linear = step.linear;
+        // The harmonics' phases are free, not tied to the offsets (see `iterate`): they stay
+        // where the image has them while the offsets move (at the field's centre, where the
+        // slopes move nothing).
+        let (g1, g2) = (step.delta[2], step.delta[5]);
+        for (((h1, h2), a), d) in model.harmonics.iter_mut().zip(&step.harmonics) {
+            *a = (*a + d) * Complex64::from_polar(1.0, -(*h1 as f64 * g1 + *h2 as f64 * g2));
+        }
+        if !step.frozen.is_empty() {
+            model.frozen = step.frozen;
+        }
+        if iteration <= ROBUST_ITERATIONS {
+            let floor = MIN_CUTOFF * model.contrast();
+            model.cutoff = Some((TUKEY * step.residual_std).max(floor)).filter(|c| *c > 0.0);
+            model.cells = cell_weights(&step.cells);
+        }
+        if iteration >= MIN_ITERATIONS && largest < CONVERGED {
+            return Some(FieldFit {
+                planes: model.planes,
+                amplitudes: [model.linear[3].abs(), model.linear[6].abs()],
+                residual_std: step.residual_std,
+                inlier_fraction: step.inlier_fraction,
+                pixels: step.pixels,
+                iterations: iteration,
+                covariance: step.covariance,
+                frame: field.frame,
+            });
+        }
+    }
+    // Still moving after MAX_ITERATIONS: the field does not follow the model well enough
+    // (perspective, a deformed part) for one fixed answer; the caller keeps its planes.
+    log::debug!("whole-field fit not converged in {MAX_ITERATIONS} iterations");
+    None
+}
+
+/// The starting model: background, fundamentals and every harmonic demodulated under the
+/// layout weight (exact for a periodic field, whose terms the weight keeps orthogonal); the
+/// harmonics above [`MIN_HARMONIC`] of the fundamental are kept.
+#[inline(always)]
+fn first_model(
+    image: &GreyImage,
+    field: &FieldBox,
+    mask: &NodeMask,
+    planes: [PhasePlane; 2],
+) -> Option<Model> {
+    let side = field.cols.len().min(field.rows.len()) as f64;
+    let all: Vec<((i32, i32), Complex64)> = resolvable_harmonics(&planes, side)
+        .into_iter()
+        .map(|h| (h, Complex64::default()))
+        .collect();
+    let mut bank = HarmonicBank::new(&all, &planes);
+    let mut fundamentals = [Complex64::default(); 2];
+    let (mut total, mut mean) = (0.0, 0.0);
+    for p in field.pixels(image, &planes, mask, &[]) {
+        match p.advance {
+            0 => bank.seed(&p.z),
+            columns => bank.advance(columns),
+        }
+        total += p.w;
+        mean += p.w * p.g;
+        let d = p.w * p.g;
+        bank.demodulate(d);
+        fundamentals[0] += d * p.z[0].conj();
+        fundamentals[1] += d * p.z[1].conj();
+    }
+    if total <= 0.0 {
+        return None;
+    }
+    let mut linear = SVector::zeros();
+    linear[0] = mean / total;
+    linear[3] = 2.0 * fundamentals[0].re / total;
+    linear[6] = 2.0 * fundamentals[1].re / total;
+    let contrast = 0.5 * (linear[3].abs() + linear[6].abs());
+    let harmonics = all
+        .iter()
+        .zip(bank.sums())
+        .map(|(&(h, _), sum)| (h, 2.0 * sum / total))
+        .filter(|(_, a)| a.norm() >= MIN_HARMONIC * contrast)
+        .collect();
+    Some(Model {
+        planes,
+        linear,
+        harmonics,
+        cutoff: None,
+        cells: Vec::new(),
+        frozen: Vec::new(),
+    })
+}
+
+/// Output of one iteration.
+struct Step {
+    linear: SVector<f64, LINEAR>,
+    /// `(α₁, β₁, γ₁, α₂, β₂, γ₂)`.
+    delta: Vector6<f64>,
+    /// Correction of each modelled harmonic's amplitude.
+    harmonics: Vec<Complex64>,
+    covariance: Matrix6<f64>,
+    /// Robust standard deviation of the residuals before the step.
+    residual_std: f64,
+    inlier_fraction: f64,
+    pixels: usize,
+    /// `(Σ w_L·r², Σ w_L)` of each cell (per node of the mask).
+    cells: Vec<[f64; 2]>,
+    /// The pixels' robust weights of this iteration, when asked to freeze them.
+    frozen: Vec<f32>,
+}
+
+/// One sweep over the field: residuals of the current model, their robust weights, the
+/// weighted normal equations of the linearised model (solved), and the harmonics' correction:
+/// the demodulated *clipped residual* `ψ(r) = r·w_T(r)` under the layout weight — a Newton step
+/// towards the M-estimate that keeps the harmonics orthogonal (reweighting the demodulation
+/// itself would mix them).
+#[inline(always)]
+fn iterate(
+    image: &GreyImage,
+    field: &FieldBox,
+    mask: &NodeMask,
+    model: &Model,
+    freeze: bool,
+) -> Option<Step> {
+    let mut frozen = if freeze {
+        vec![0.0f32; field.rows.len() * field.cols.len()]
+    } else {
+        Vec::new()
+    };
+    // Plain arrays in the loop (contiguous rows vectorise); the full matrix, not a triangle.
+    let mut gram = [[0.0f64; UNKNOWNS]; UNKNOWNS];
+    let mut rhs = SVector::<f64, UNKNOWNS>::zeros();
+    let (mut sum_w, mut sum_w2, mut sum_layout, mut pixels) = (0.0, 0.0, 0.0, 0usize);
+    let mut residuals = Vec::new();
+    let mut cells = vec![[0.0f64; 2]; mask.len()];
+    let mut sum_wr2 = 0.0;
+    let mut basis = [0.0f64; UNKNOWNS];
+    let mut bank = HarmonicBank::new(&model.harmonics, &model.planes);
+    for p in field.pixels(image, &model.planes, mask, &model.cells) {
+        match p.advance {
+            0 => bank.seed(&p.z),
+            columns => bank.advance(columns),
+        }
+        let (h, h_slope) = bank.evaluate();
+        let gain = model.gain(&p);
+        let data = p.g - h;
+        let r = p.g - gain * h - model.linear_at(&p);
+        let robust = match model.frozen.get(p.index) {
+            Some(&w) => w as f64,
+            None => model.robust(r),
+        };
+        if let Some(slot) = frozen.get_mut(p.index) {
+            *slot = robust as f32;
+        }
+        pixels += 1;
+        sum_layout += p.layout;
+        if p.w >= 0.5 {
+            residuals.push(r.abs());
+        }
+        if let Some(cell) = p.cell.and_then(|i| cells.get_mut(i)) {
+            cell[0] += p.layout * r * r;
+            cell[1] += p.layout;
+        }
+        bank.demodulate(p.w * r * robust);
+        let w = p.w * robust;
+        if w <= 0.0 {
+            continue;
+        }
+        sum_w += w;
+        sum_w2 += w * w;
+        sum_wr2 += w * r * r;
+        let m = &model.linear;
+        basis[0] = 1.0;
+        basis[1] = p.xn;
+        basis[2] = p.yn;
+        for l in 0..2 {
+            let (c, sn) = (p.z[l].re, p.z[l].im);
+            basis[3 + 3 * l] = c;
+            basis[4 + 3 * l] = p.xn * c;
+            basis[5 + 3 * l] = p.yn * c;
+            // ∂g/∂φ_l at the current amplitudes. The offsets γ_l take the fundamentals' part
+            // only: each harmonic has a free phase, so it says nothing about the offsets
+            // (letting it pull them would only slow the alternation with the demodulation
+            // down). Its phase *ramp* does inform the slopes; X and Y are centred on the
+            // field's weight, so ramp and phase decouple.
+            let amplitude = m[3 + 3 * l] + m[4 + 3 * l] * p.xn + m[5 + 3 * l] * p.yn;
+            let fundamental = -amplitude * sn;
+            let d = fundamental + gain * h_slope[l];
+            basis[LINEAR + 3 * l] = d * p.xn;
+            basis[LINEAR + 3 * l + 1] = d * p.yn;
+            basis[LINEAR + 3 * l + 2] = fundamental;
+        }
+        basis[9] = p.xn * h;
+        basis[10] = p.yn * h;
+        for (i, row) in gram.iter_mut().enumerate() {
+            let wi = w * basis[i];
+            rhs[i] += wi * data;
+            for (g, b) in row.iter_mut().zip(&basis) {
+                *g += wi * b;
+            }
+        }
+    }
+    if sum_w <= 0.0 || sum_layout <= 0.0 {
+        return None;
+    }
+    let normal = SMatrix::<f64, UNKNOWNS, UNKNOWNS>::from_fn(|i, j| gram[i][j]);
+    let inverse = normal.cholesky()?.inverse();
+    let x = inverse * rhs;
+    let residual_std = MAD_TO_SIGMA * median(&mut residuals).unwrap_or(0.0);
+    // Weighted least squares under white noise σ²: Cov = σ²·N⁻¹(Σw²bbᵀ)N⁻¹ ≈ σ²·N⁻¹·Σw²/Σw.
+    // σ²: the smaller of the kept pixels' weighted mean square residual and the robust
+    // (median) scale, both upper bounds of the white noise; the median ignores the static
+    // model error that sits on few pixels (dot edges, aliased harmonics), which does not
+    // scatter the result from frame to frame.
+    let noise_variance = (sum_wr2 / sum_w).min(residual_std * residual_std);
+    let covariance =
+        inverse.fixed_view::<6, 6>(LINEAR, LINEAR).into_owned() * (noise_variance * sum_w2 / sum_w);
+    Some(Step {
+        linear: x.fixed_rows::<LINEAR>(0).into_owned(),
+        delta: x.fixed_rows::<6>(LINEAR).into_owned(),
+        harmonics: bank.sums().map(|d| 2.0 * d / sum_w).collect(),
+        covariance,
+        residual_std,
+        inlier_fraction: sum_w / sum_layout,
+        pixels,
+        cells,
+        frozen,
+    })
+}
+
+/// Robust weight of each cell from its RMS residual `ρ` against the median `m` of the cells
+/// with at least half a cell of layout weight: 1 up to `CELL_FULL·m`, 0 beyond `CELL_ZERO·m`,
+/// cos² in between. `sums` holds `(Σ w_L·r², Σ w_L)` per node.
+fn cell_weights(sums: &[[f64; 2]]) -> Vec<f64> {
+    let rms: Vec<f64> = sums
+        .iter()
+        .map(|&[r2, w]| if w > 0.0 { (r2 / w).sqrt() } else { 0.0 })
+        .collect();
+    let largest = sums.iter().map(|s| s[1]).fold(0.0, f64::max);
+    let mut full: Vec<f64> = sums
+        .iter()
+        .zip(&rms)
+        .filter(|(s, _)| s[1] >= 0.5 * largest)
+        .map(|(_, &r)| r)
+        .collect();
+    let typical = median(&mut full).unwrap_or(0.0);
+    if typical <= 0.0 {
+        return vec![1.0; sums.len()];
+    }
+    rms.iter()
+        .map(|&r| {
+            let t = r / typical;
+            if t <= CELL_FULL {
+                1.0
+            } else if t >= CELL_ZERO {
+                0.0
+            } else {
+                let c = (0.5 * PI * (t - CELL_FULL) / (CELL_ZERO - CELL_FULL)).cos();
+                c * c
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A dot grid `g = 0.5 + Σ harmonics` with planes `planes`, `n × n` pixels.
+    fn grid(n: usize, planes: &[PhasePlane; 2], dot: impl Fn(f64, f64) -> f64) -> GreyImage {
+        let (cx, cy) = ((n / 2) as f64, (n / 2) as f64);
+        let mut px = Vec::with_capacity(n * n);
+        for r in 0..n {
+            for c in 0..n {
+                let (x, y) = (c as f64 - cx, r as f64 - cy);
+                px.push(dot(planes[0].at(x, y), planes[1].at(x, y)) as f32);
+            }
+        }
+        GreyImage::new(n, n, px).unwrap()
+    }
+
+    fn planes(angle: f64, period: f64, offset: [f64; 2]) -> [PhasePlane; 2] {
+        let k = TAU / period;
+        let (s, c) = angle.sin_cos();
+        [
+            PhasePlane {
+                a: k * c,
+                b: k * s,
+                c: offset[0],
+            },
+            PhasePlane {
+                a: -k * s,
+                b: k * c,
+                c: offset[1],
+            },
+        ]
+    }
+
+    /// Sharp-ish dots: a raised power of the product of cosines (many harmonics).
+    fn sharp(p1: f64, p2: f64) -> f64 {
+        let v = (0.5 + 0.5 * p1.cos()) * (0.5 + 0.5 * p2.cos());
+        0.2 + 0.6 * v.powi(3)
+    }
+
+    #[test]
+    fn recovers_the_planes_of_a_harmonic_rich_grid_from_a_rough_start() {
+        let truth = planes(0.3, 9.3, [0.4, -1.1]);
+        let image = grid(160, &truth, sharp);
+        let mask = NodeMask::from_fn(-6..=6, -6..=6, |_, _| true);
+        let mut start = truth;
+        start[0].c += 0.05;
+        start[1].a *= 1.002;
+        let fit = fit_dot_field(&image, start, &mask).unwrap();
+        for (f, t) in fit.planes.iter().zip(&truth) {
+            assert!(
+                (f.a - t.a).abs() < 1e-8 && (f.b - t.b).abs() < 1e-8,
+                "{f:?} {t:?}"
+            );
+            assert!((f.c - t.c).abs() < 1e-6, "{f:?} {t:?}");
+        }
+        assert!(fit.inlier_fraction > 0.95, "{}", fit.inlier_fraction);
+    }
+
+    #[test]
+    fn ignores_a_blotch_and_irregular_nodes() {
+        let truth = planes(-0.2, 11.0, [1.0, 2.0]);
+        let mut image = grid(180, &truth, sharp);
+        // A dark blotch over several dots, and a missing dot at a masked node.
+        let (w, _) = (image.width(), image.height());
+        for r in 60..80 {
+            for c in 100..125 {
+                image.pixels_mut()[r * w + c] = 0.05;
+            }
+        }
+        let mask = NodeMask::from_fn(-5..=5, -5..=5, |a, b| !(a == 0 && b == 0));
+        let fit = fit_dot_field(&image, truth, &mask).unwrap();
+        for (f, t) in fit.planes.iter().zip(&truth) {
+            assert!((f.c - t.c).abs() < 1e-5, "{f:?} {t:?}");
+            assert!(
+                (f.a - t.a).abs() < 1e-7 && (f.b - t.b).abs() < 1e-7,
+                "{f:?} {t:?}"
+            );
+        }
+        assert!(fit.inlier_fraction < 0.99, "{}", fit.inlier_fraction);
+    }
+
+    #[test]
+    fn refuses_a_start_that_is_not_the_grid() {
+        let truth = planes(0.1, 10.0, [0.0, 0.0]);
+        let image = grid(128, &truth, sharp);
+        let mask = NodeMask::from_fn(-4..=4, -4..=4, |_, _| true);
+        let wrong = planes(0.1, 13.0, [0.0, 0.0]);
+        assert!(fit_dot_field(&image, wrong, &mask).is_none());
+    }
+
+    #[test]
+    fn layout_weight_is_a_partition_of_unity() {
+        let mask = NodeMask::from_fn(-3..=3, -3..=3, |_, _| true);
+        let weight = |u: [f64; 2]| mask.weight(u, u.map(|v| (PI * v).cos()), &[]).0;
+        for &(u1, u2) in &[(0.0, 0.0), (0.3, -1.7), (2.49, 1.01), (-2.2, 2.9)] {
+            assert!((weight([u1, u2]) - 1.0).abs() < 1e-12);
+        }
+        assert_eq!(weight([4.0, 0.0]), 0.0);
+        assert!((weight([3.5, 0.0]) - 0.5).abs() < 1e-12);
+        // Lower weight near a node whose robust weight is 0, none at it.
+        let nodes: Vec<f64> = (0..mask.len())
+            .map(|i| if i == 24 { 0.0 } else { 1.0 })
+            .collect();
+        let at = |u: [f64; 2]| mask.weight(u, u.map(|v| (PI * v).cos()), &nodes).1;
+        assert_eq!(at([0.0, 0.0]), 0.0);
+        assert!((at([0.5, 0.0]) - 0.5).abs() < 1e-12 && at([1.0, 0.0]) == 1.0);
+    }
+}
