@@ -3,7 +3,8 @@
 //!
 //! Prints ms per frame (median, plans warm) on the full 2456×2054 `hpcode/Image100.png` and on a
 //! 1024×1024 crop of it holding both markers, for the default settings (window inside each
-//! marker, refined planes) and for the original's 512-px window, plus the cost of the finder
+//! marker, then the whole-field fit), the window's planes alone, and the original's 512-px
+//! window, plus the cost of the finder
 //! search alone and the rest per marker (grouping, window, phase engine — once or twice, see
 //! `HpCodeDetector` —, ID), with the markers measured on one thread and on every core, and
 //! in tracking mode (`HpCodeDetector::track`: no finder search, as between reacquisitions).
@@ -73,14 +74,17 @@ fn main() {
     for (name, image, original_ms) in [("2456x2054", &full, 94.0), ("1024x1024 crop", &crop, 61.0)]
     {
         // Markers measured on 1 thread, then on every core (`HpCodeParams::threads` 0).
-        for (window, size, threads) in [
-            ("auto, 1 thread", None, 1),
-            ("auto", None, 0),
-            ("512", Some(512), 0),
+        // Default: whole-field fit after decoding; "window" rows keep the window's planes.
+        for (window, size, threads, field_fit) in [
+            ("auto, 1 thread", None, 1, true),
+            ("auto", None, 0, true),
+            ("auto, window", None, 0, false),
+            ("512, window", Some(512), 0, false),
         ] {
             let mut params = HpCodeParams::new(15.5, 33);
             params.window_size = size;
             params.threads = threads;
+            params.field_fit = field_fit;
             let mut detector = match HpCodeDetector::new(params) {
                 Ok(d) => d,
                 Err(e) => {
@@ -105,7 +109,7 @@ fn main() {
                 original_ms / total_ms,
                 markers
             );
-            if size.is_none() && threads == 0 {
+            if size.is_none() && threads == 0 && field_fit {
                 // Tracking: the markers measured again from their last positions, no search.
                 let previous = detector.detect(image).unwrap_or_default();
                 let predicted: Vec<_> = previous.iter().map(|m| m.origin_px).collect();
