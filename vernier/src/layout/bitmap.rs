@@ -420,6 +420,24 @@ impl Layout for FingerprintLayout {
 mod tests {
     use super::*;
 
+    #[test]
+    fn regular_dots_are_those_with_a_plain_periodic_neighbourhood() {
+        // 13 × 13 half-period cells: dots on even cells, a solid bar on row 6 from col 8.
+        let n = 13;
+        let cells = (0..n * n)
+            .map(|i| {
+                let (r, c) = (i / n, i % n);
+                (r % 2 == 0 && c % 2 == 0) || (r == 6 && c >= 8)
+            })
+            .collect();
+        let b = BitmapLayout::from_cells_unchecked(1.0, n, n, cells);
+        assert!(b.is_regular_dot(4, 4));
+        // Too close to the bitmap's edge, on a gap cell, or within one period of the bar.
+        assert!(!b.is_regular_dot(0, 4) && !b.is_regular_dot(2, 12));
+        assert!(!b.is_regular_dot(5, 5) && !b.is_regular_dot(4, 8) && !b.is_regular_dot(8, 10));
+        assert!(b.is_regular_dot(2, 8) && b.is_regular_dot(10, 4));
+    }
+
     fn checkerboard(n_rows: usize, n_cols: usize) -> Vec<Vec<u8>> {
         (0..n_rows)
             .map(|r| {

@@ -78,6 +78,9 @@ const CELL_FULL: f64 = 2.0;
 /// … and has none beyond this many (cos² taper in between). For pure noise a cell of `p²`
 /// pixels has an RMS within ~`1/√(2p²)` of the median: never rejected.
 const CELL_ZERO: f64 = 4.0;
+/// Half-width of the neighbourhood a cell's residual is compared with, nodes (a 7 × 7 block:
+/// a dust spot or a hair covers a minority of it).
+const CELL_NEIGHBOURHOOD: usize = 3;
 /// Iterations that update the robust weights; later ones keep them, so the fit converges to
 /// the solution of one fixed weighted problem.
 const ROBUST_ITERATIONS: usize = 2;
@@ -843,7 +846,7 @@ fn fit_dot_field_generic(
         if iteration <= ROBUST_ITERATIONS {
             let floor = MIN_CUTOFF * model.contrast();
             model.cutoff = Some((TUKEY * step.residual_std).max(floor)).filter(|c| *c > 0.0);
-            model.cells = cell_weights(&step.cells);
+            model.cells = cell_weights(&step.cells, mask.dims);
         }
         if iteration >= MIN_ITERATIONS && largest < CONVERGED {
             return Some(FieldFit {
@@ -1056,27 +1059,51 @@ fn iterate(
 }
 
 /// Robust weight of each cell from its RMS residual `ρ` against the median `m` of the cells
-/// with at least half a cell of layout weight: 1 up to `CELL_FULL·m`, 0 beyond `CELL_ZERO·m`,
-/// cos² in between. `sums` holds `(Σ w_L·r², Σ w_L)` per node.
-fn cell_weights(sums: &[[f64; 2]]) -> Vec<f64> {
+/// around it (within [`CELL_NEIGHBOURHOOD`] nodes, those with at least half a cell of layout
+/// weight; at most `CELL_FULL` times the field's median, so that a neighbourhood spoiled as a
+/// whole is still judged): 1 up to `CELL_FULL·m`, 0 beyond `CELL_ZERO·m`, cos² in between.
+/// Dust and hair stand out from their neighbours; model error that varies smoothly over the
+/// field (vignetting, a slow change of focus) does not. `sums` holds `(Σ w_L·r², Σ w_L)` per
+/// node of a `dims` mask.
+fn cell_weights(sums: &[[f64; 2]], dims: (usize, usize)) -> Vec<f64> {
     let rms: Vec<f64> = sums
         .iter()
         .map(|&[r2, w]| if w > 0.0 { (r2 / w).sqrt() } else { 0.0 })
         .collect();
     let largest = sums.iter().map(|s| s[1]).fold(0.0, f64::max);
-    let mut full: Vec<f64> = sums
-        .iter()
-        .zip(&rms)
-        .filter(|(s, _)| s[1] >= 0.5 * largest)
-        .map(|(_, &r)| r)
+    let full = |i: usize| sums.get(i).is_some_and(|s| s[1] >= 0.5 * largest);
+    let mut all: Vec<f64> = (0..rms.len())
+        .filter(|&i| full(i))
+        .map(|i| rms[i])
         .collect();
-    let typical = median(&mut full).unwrap_or(0.0);
-    if typical <= 0.0 {
+    let global = median(&mut all).unwrap_or(0.0);
+    if global <= 0.0 {
         return vec![1.0; sums.len()];
     }
-    rms.iter()
-        .map(|&r| {
-            let t = r / typical;
+    let reach = CELL_NEIGHBOURHOOD as i64;
+    let (n1, n2) = (dims.0 as i64, dims.1 as i64);
+    let mut local = Vec::new();
+    (0..rms.len())
+        .map(|i| {
+            let (a, b) = ((i / dims.1.max(1)) as i64, (i % dims.1.max(1)) as i64);
+            local.clear();
+            for da in -reach..=reach {
+                for db in -reach..=reach {
+                    let (p, q) = (a + da, b + db);
+                    if p >= 0 && q >= 0 && p < n1 && q < n2 {
+                        let j = (p * n2 + q) as usize;
+                        if full(j) {
+                            local.push(rms[j]);
+                        }
+                    }
+                }
+            }
+            let typical = if local.len() >= 9 {
+                median(&mut local).unwrap_or(global).min(CELL_FULL * global)
+            } else {
+                global
+            };
+            let t = rms[i] / typical.max(f64::MIN_POSITIVE);
             if t <= CELL_FULL {
                 1.0
             } else if t >= CELL_ZERO {
