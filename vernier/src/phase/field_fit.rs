@@ -29,8 +29,9 @@
 //! * **Robust weights.** A pixel's weight is `w_L` with each node's term multiplied by the
 //!   node's cell weight (still a sum of node kernels, so still orthogonal), times Tukey's
 //!   biweight `(1 − (r/c)²)²` of its residual. A cell (one period around a node) whose RMS
-//!   residual exceeds twice the median cell's loses weight, none is left beyond 4×: dust, hair
-//!   and scratches spoil whole cells, while the dots' fine model error is in every cell alike.
+//!   residual exceeds twice the median of the cells around it (7 × 7 nodes) loses weight, none
+//!   is left beyond 4×: dust, hair and scratches spoil whole cells, while the dots' fine model
+//!   error is in every cell alike and smooth model error (vignetting) in neighbouring ones.
 //!   The biweight's cut-off is `c = max(4.685·σ, B)`, `σ` = 1.4826 × the median absolute
 //!   residual (95 % efficiency on Gaussian noise), at least the fundamental's amplitude `B`, so
 //!   that only gross departures count as outliers on clean images. The first iteration is not
