@@ -618,30 +618,34 @@ impl Measure<'_> {
         if support < MIN_GRID_SUPPORT {
             return reject(&format!("grid support {support:.3} < {MIN_GRID_SUPPORT}"));
         }
-        let (grid, field) = match self.params.field_fit {
-            true => match fine::refine_on_field(image, &grid, reading.id, reading.mirrored) {
-                Some((refined, fit)) => {
-                    log::debug!(
-                        "marker {}: field fit over {} px, {} iterations, {:.1} % inliers, \
+        let refined = if self.params.field_fit {
+            fine::refine_on_field(image, &grid, reading.id, reading.mirrored)
+        } else {
+            None
+        };
+        let (grid, field) = match refined {
+            Some((refined, fit)) => {
+                log::debug!(
+                    "marker {}: field fit over {} px, {} iterations, {:.1} % inliers, \
                          residual σ {:.2e}, orientation σ {:.2e} rad",
-                        reading.id,
-                        fit.pixels,
-                        fit.iterations,
-                        100.0 * fit.inlier_fraction,
-                        fit.residual_std,
-                        fit.mean_direction_std()
-                    );
-                    (refined, Some(fit))
-                }
-                None => {
+                    reading.id,
+                    fit.pixels,
+                    fit.iterations,
+                    100.0 * fit.inlier_fraction,
+                    fit.residual_std,
+                    fit.mean_direction_std()
+                );
+                (refined, Some(fit))
+            }
+            None => {
+                if self.params.field_fit {
                     log::debug!(
                         "marker {}: no whole-field fit, window planes kept",
                         reading.id
                     );
-                    (grid, None)
                 }
-            },
-            false => (grid, None),
+                (grid, None)
+            }
         };
         let (icx, icy) = image.center();
         let image_center = Vector2::new(icx as f64, icy as f64);
