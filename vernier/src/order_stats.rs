@@ -29,6 +29,18 @@ impl Sample for f64 {
     }
 }
 
+/// A Gaussian's standard deviation over the median of its absolute values.
+pub(crate) const MAD_TO_SIGMA: f64 = 1.4826;
+/// Tukey's biweight tuning constant, in robust standard deviations (95 % efficiency on
+/// Gaussian noise).
+pub(crate) const TUKEY_BIWEIGHT: f64 = 4.685;
+
+/// Robust standard deviation `1.4826·median|r|` of absolute residuals (reordered in place);
+/// 0 when empty.
+pub(crate) fn robust_sigma(absolute_residuals: &mut [f64]) -> f64 {
+    MAD_TO_SIGMA * median(absolute_residuals).unwrap_or(0.0)
+}
+
 /// Median of `values`, reordered in place (selection, not a full sort): the middle value, or
 /// the mean of the two middle values for an even count; `None` when empty.
 pub(crate) fn median<T: Sample>(values: &mut [T]) -> Option<T> {

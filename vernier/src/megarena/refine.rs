@@ -485,7 +485,7 @@ fn weighted_plane(samples: &[DotPhase]) -> Option<PhasePlane> {
     } else {
         *residuals.select_nth_unstable_by(mid, f64::total_cmp).1
     };
-    let limit = 5.0 * 1.4826 * mad;
+    let limit = 5.0 * crate::order_stats::MAD_TO_SIGMA * mad;
     if limit > 0.0 {
         fit(&|s: &DotPhase| (s.phase - first.at(s.x, s.y)).abs() <= limit)
     } else {

@@ -50,9 +50,9 @@
 //! Cost: one sweep per iteration (~40 multiply-adds per harmonic and 300 for the normal
 //! equations per pixel), 4–8 iterations; AVX2 when the CPU has it.
 
-use super::plane::PhasePlane;
+use super::plane::{wrap_to_pi, PhasePlane};
 use crate::grey_image::GreyImage;
-use crate::order_stats::median;
+use crate::order_stats::{median, robust_sigma, TUKEY_BIWEIGHT};
 use nalgebra::{Matrix6, SMatrix, SVector, Vector2, Vector6};
 use num_complex::Complex64;
 use std::f64::consts::{PI, TAU};
@@ -65,9 +65,6 @@ const MAX_ORDER: usize = 5;
 /// iterations (their leakage into the slopes is then below ~2e-5 rad of phase at the field's
 /// edge): blurred images keep a few, sharp ones a few dozen.
 const MIN_HARMONIC: f64 = 1e-3;
-/// Tukey biweight tuning constant, in robust residual standard deviations (95 % efficiency
-/// on Gaussian noise).
-const TUKEY: f64 = 4.685;
 /// Smallest Tukey cut-off, in mean fundamental amplitudes `B`: a pixel is a gross outlier
 /// only when it departs from the model by more than the fundamental's amplitude (a quarter to
 /// a third of the dot contrast). Smaller departures are model detail (dot edges that vary
@@ -85,8 +82,6 @@ const CELL_NEIGHBOURHOOD: usize = 3;
 /// Iterations that update the robust weights; later ones keep them, so the fit converges to
 /// the solution of one fixed weighted problem.
 const ROBUST_ITERATIONS: usize = 2;
-/// Robust standard deviation of a Gaussian from its median absolute value.
-const MAD_TO_SIGMA: f64 = 1.4826;
 /// Iteration bounds: at least this many (the first is not reweighted, the last
 /// `MIN_ITERATIONS − ROBUST_ITERATIONS` keep the final weights) …
 const MIN_ITERATIONS: usize = ROBUST_ITERATIONS + 1;
@@ -284,12 +279,11 @@ fn all_harmonics() -> Vec<(i32, i32)> {
 fn resolvable_harmonics(planes: &[PhasePlane; 2], side: f64) -> Vec<(i32, i32)> {
     let mut candidates = all_harmonics();
     candidates.sort_by_key(|&(a, b)| (a.abs().max(b.abs()), a.abs() + b.abs()));
-    let fold = |v: f64| v - TAU * (v / TAU).round();
     let wave = |(h1, h2): (i32, i32)| {
         let (h1, h2) = (h1 as f64, h2 as f64);
         [
-            fold(h1 * planes[0].a + h2 * planes[1].a),
-            fold(h1 * planes[0].b + h2 * planes[1].b),
+            wrap_to_pi(h1 * planes[0].a + h2 * planes[1].a),
+            wrap_to_pi(h1 * planes[0].b + h2 * planes[1].b),
         ]
     };
     let separation = MIN_SEPARATION_CYCLES * TAU / side.max(1.0);
@@ -298,9 +292,9 @@ fn resolvable_harmonics(planes: &[PhasePlane; 2], side: f64) -> Vec<(i32, i32)> 
     for h in candidates {
         let k = wave(h);
         let near = |q: &[f64; 2]| {
-            [1.0, -1.0]
-                .iter()
-                .any(|&sign| fold(k[0] - sign * q[0]).hypot(fold(k[1] - sign * q[1])) < separation)
+            [1.0, -1.0].iter().any(|&sign| {
+                wrap_to_pi(k[0] - sign * q[0]).hypot(wrap_to_pi(k[1] - sign * q[1])) < separation
+            })
         };
         if !taken.iter().any(near) {
             taken.push(k);
@@ -528,7 +522,8 @@ fn harmonic(p: &Powers, h1: i32, h2: i32) -> Complex64 {
     pick(0, h1) * pick(1, h2)
 }
 
-/// The field's pixel box: pixels within one period of the regular nodes, clipped to the image.
+/// The field's pixel box: pixels within one period of the regular nodes, clipped to the image
+/// ([`FieldBox::new`]: its bounds only; [`FieldBox::centred`]: with the fit's coordinates).
 struct FieldBox {
     cols: std::ops::Range<usize>,
     rows: std::ops::Range<usize>,
@@ -568,15 +563,25 @@ impl FieldBox {
             return None;
         }
         let s = (cols.len().max(rows.len()) as f64 / 2.0).max(1.0);
-        let mut field = FieldBox {
+        Some(FieldBox {
             cols,
             rows,
             center: (cx, cy),
             frame: (0.0, 0.0, s),
-        };
-        // Centre the normalised coordinates on the field's layout weight (Σw·X = Σw·Y = 0).
+        })
+    }
+
+    /// The box with its normalised coordinates centred on the field's layout weight
+    /// (`Σw·X = Σw·Y = 0`); `None` when no pixel has weight.
+    fn centred(
+        mut self,
+        image: &GreyImage,
+        planes: &[PhasePlane; 2],
+        mask: &NodeMask,
+    ) -> Option<Self> {
+        let s = self.frame.2;
         let (mut sw, mut sx, mut sy) = (0.0, 0.0, 0.0);
-        for p in field.pixels(image, planes, mask, &[]) {
+        for p in self.pixels(image, planes, mask, &[]) {
             sw += p.w;
             sx += p.w * p.xn;
             sy += p.w * p.yn;
@@ -584,8 +589,8 @@ impl FieldBox {
         if sw <= 0.0 {
             return None;
         }
-        field.frame = (s * sx / sw, s * sy / sw, s);
-        Some(field)
+        self.frame = (s * sx / sw, s * sy / sw, s);
+        Some(self)
     }
 
     /// The pixels of the field with a non-zero layout weight, row by row; `nodes` holds the
@@ -800,7 +805,7 @@ fn fit_dot_field_generic(
     start: [PhasePlane; 2],
     mask: &NodeMask,
 ) -> Option<FieldFit> {
-    let field = FieldBox::new(image, &start, mask)?;
+    let field = FieldBox::new(image, &start, mask)?.centred(image, &start, mask)?;
     let (x0, y0, s) = field.frame;
     let mut model = first_model(image, &field, mask, start)?;
     let mut total_shift = [0.0f64; 2];
@@ -846,7 +851,8 @@ fn fit_dot_field_generic(
         }
         if iteration <= ROBUST_ITERATIONS {
             let floor = MIN_CUTOFF * model.contrast();
-            model.cutoff = Some((TUKEY * step.residual_std).max(floor)).filter(|c| *c > 0.0);
+            model.cutoff =
+                Some((TUKEY_BIWEIGHT * step.residual_std).max(floor)).filter(|c| *c > 0.0);
             model.cells = cell_weights(&step.cells, mask.dims);
         }
         if iteration >= MIN_ITERATIONS && largest < CONVERGED {
@@ -1037,7 +1043,7 @@ fn iterate(
     let normal = SMatrix::<f64, UNKNOWNS, UNKNOWNS>::from_fn(|i, j| gram[i][j]);
     let inverse = normal.cholesky()?.inverse();
     let x = inverse * rhs;
-    let residual_std = MAD_TO_SIGMA * median(&mut residuals).unwrap_or(0.0);
+    let residual_std = robust_sigma(&mut residuals);
     // Weighted least squares under white noise σ²: Cov = σ²·N⁻¹(Σw²bbᵀ)N⁻¹ ≈ σ²·N⁻¹·Σw²/Σw.
     // σ²: the smaller of the kept pixels' weighted mean square residual and the robust
     // (median) scale, both upper bounds of the white noise; the median ignores the static

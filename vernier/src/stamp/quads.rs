@@ -30,7 +30,7 @@
 //! the bitmap match, not by contour nesting alone.
 
 use crate::grey_image::{GreyImage, Polarity};
-use crate::order_stats::median;
+use crate::order_stats::{median, robust_sigma, TUKEY_BIWEIGHT};
 use nalgebra::{Matrix2, Matrix3, Vector2, Vector3};
 
 /// Settings of the frame (quadrilateral) search.
@@ -322,8 +322,8 @@ fn robust_line(points: &[(f64, f64)], expected: usize) -> Option<(f64, f64)> {
         residuals.extend(points.iter().map(|&(s, e)| (e - offset - slope * s).abs()));
         let mut r = residuals.clone();
         // Robust spread, floored at a quarter pixel (sharp synthetic edges give ~0).
-        scale = (1.4826 * median(&mut r).unwrap_or(0.0)).max(0.25);
-        let c = 4.685 * scale;
+        scale = robust_sigma(&mut r).max(0.25);
+        let c = TUKEY_BIWEIGHT * scale;
         let (mut sw, mut ss, mut se, mut sss, mut sse) = (0.0, 0.0, 0.0, 0.0, 0.0);
         for (&(s, e), &res) in points.iter().zip(&residuals) {
             let w = if res < c {
