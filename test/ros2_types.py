@@ -181,6 +181,8 @@ class MarkerPose(IdlStruct, typename="vernier_ros::msg::dds_::MarkerPose_"):
     covariance: array[float64, 36] = field(default_factory=lambda: [0.0] * 36)
     duplicate_id: bool = False
     decode_confidence: float64 = 0.0
+    measured_pixel_size: float64 = 0.0
+    measured_pixel_size_std: float64 = 0.0
 
 
 @dataclass

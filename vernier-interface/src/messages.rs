@@ -419,6 +419,11 @@ pub struct MarkerPose {
     pub duplicate_id: bool,
     /// Confidence of the coarse decoding, `[0, 1]`; −1 for periodic grids (none).
     pub decode_confidence: f64,
+    /// The marker's own measured scale, metres per pixel (`pixel_size` unless a calibrated
+    /// pixel size is set).
+    pub measured_pixel_size: f64,
+    /// Standard deviation of `measured_pixel_size`, metres per pixel.
+    pub measured_pixel_size_std: f64,
 }
 
 /// `vernier_ros/MarkerPoseArray` (msg/MarkerPoseArray.msg), published on `~/markers` for every
@@ -489,8 +494,8 @@ mod tests {
         };
         let bytes = cdr(&array);
         // header 13 (+3 padding) + sequence length 4 (+4 padding: u64 aligns to 8) + id 8
-        // + pose 56 + 2 doubles 16 + 36 doubles 288 + bool 1 (+7 padding) + double 8.
-        assert_eq!(bytes.len(), 16 + 4 + 4 + 8 + 56 + 16 + 288 + 1 + 7 + 8);
+        // + pose 56 + 2 doubles 16 + 36 doubles 288 + bool 1 (+7 padding) + 3 doubles 24.
+        assert_eq!(bytes.len(), 16 + 4 + 4 + 8 + 56 + 16 + 288 + 1 + 7 + 24);
         let back: MarkerPoseArray = body_from_cdr(&bytes).unwrap_or_default();
         assert_eq!(back, array);
         assert_eq!(back.markers[0].covariance.0[35], 2.5);

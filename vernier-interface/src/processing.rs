@@ -247,6 +247,8 @@ pub fn build_output(
             covariance: with_covariance.covariance,
             duplicate_id: m.duplicate_id,
             decode_confidence: m.decode_confidence.unwrap_or(-1.0),
+            measured_pixel_size: m.measured_pixel_size * scale,
+            measured_pixel_size_std: m.pixel_size_std * scale,
         });
         // The analysed window, flat: what the measurement covers on the part.
         let side = m.window_px as f64 * si.pose.pixel_size;
@@ -758,6 +760,8 @@ mod tests {
             pose_3d_cue_strength: None,
             window_px: 256,
             yaw_std: None,
+            measured_pixel_size: pose.pixel_size,
+            pixel_size_std: 0.0,
         };
         let a = vernier::Pose::planar(10.0, 20.0, 0.5, 1.0);
         let b = vernier::Pose::from_origin_in_image(

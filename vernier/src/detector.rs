@@ -46,6 +46,15 @@ pub struct MarkerPose {
     /// whole-field fit, docs/design.md#field-fit); `None`: [`MarkerPose::covariance`] derives
     /// it from `phase_std` and the window.
     pub yaw_std: Option<f64>,
+    /// The marker's own scale, pattern units per pixel, measured from its phase planes. It is
+    /// `pose.pixel_size` unless a calibrated pixel size was given
+    /// ([`DetectorSettings::pixel_size`], docs/design.md#calibrated-scale).
+    pub measured_pixel_size: f64,
+    /// Standard deviation of `measured_pixel_size`, pattern units per pixel (set by
+    /// [`Detector`]; 0 until then). Isotropic slope noise moves a phase gradient's length by
+    /// the same relative amount as its direction, so `σ_s/s = σ_yaw` of
+    /// [`MarkerPose::covariance`].
+    pub pixel_size_std: f64,
 }
 
 impl MarkerPose {
@@ -197,6 +206,13 @@ pub struct DetectorSettings {
     /// robustly (docs/design.md#field-fit). `None` (default) = on; `Some(false)` keeps the
     /// analysis window's planes (faster, less precise).
     pub field_fit: Option<bool>,
+    /// Calibrated pixel size, pattern units per pixel (docs/design.md#calibrated-scale; measure
+    /// it with `vernier calibrate`). A microscope's pixel size is fixed by its optics, so when
+    /// it is known, positions use it instead of each marker's own measured scale, whose error
+    /// (σ_s/s ≈ 1e-5) would otherwise move a marker 500 px from the image centre by 5e-3 px.
+    /// `None` (default): each marker's measured scale. The measured scale is reported either
+    /// way ([`MarkerPose::measured_pixel_size`]).
+    pub pixel_size: Option<f64>,
 }
 
 impl DetectorSettings {
@@ -216,7 +232,16 @@ impl DetectorSettings {
         if let Some(size) = self.window_size {
             limits::check_window_size(size)?;
         }
+        if let Some(pixel_size) = self.pixel_size {
+            limits::check_pixel_size(pixel_size)?;
+        }
         Ok(())
+    }
+
+    /// Builds the detector these settings describe ([`DetectorSettings::to_config`], then
+    /// [`Detector::new`] with the calibrated [`DetectorSettings::pixel_size`]).
+    pub fn build(&self) -> Result<Detector> {
+        Ok(Detector::new(self.to_config()?)?.with_pixel_size(self.pixel_size))
     }
 
     /// Builds the detector configuration, naming the first missing or invalid setting.
@@ -349,6 +374,10 @@ pub struct Detector {
     inner: Inner,
     /// Frame-to-frame state of [`Detector::detect_next`].
     track: TrackState,
+    /// Physical period, pattern units (for the scale's σ).
+    period: f64,
+    /// Calibrated pixel size, pattern units per pixel ([`DetectorSettings::pixel_size`]).
+    pixel_size: Option<f64>,
 }
 
 /// What tracking keeps between frames (HP codes: the last two frames' markers).
@@ -382,6 +411,7 @@ enum Inner {
 impl Detector {
     /// Builds the detector (validates the settings).
     pub fn new(config: DetectorConfig) -> Result<Self> {
+        let period = config.period();
         let inner = match config {
             DetectorConfig::Periodic(p) => Inner::Periodic(Box::new(PeriodicDetector::new(p)?)),
             DetectorConfig::Megarena(p) => Inner::Megarena(Box::new(MegarenaDetector::new(p)?)),
@@ -391,7 +421,31 @@ impl Detector {
         Ok(Detector {
             inner,
             track: TrackState::default(),
+            period,
+            pixel_size: None,
         })
+    }
+
+    /// The same detector reporting positions with a calibrated pixel size (pattern units per
+    /// pixel; `None`: each marker's measured scale). See [`DetectorSettings::pixel_size`];
+    /// the value is checked by [`DetectorSettings::validate`].
+    pub fn with_pixel_size(mut self, pixel_size: Option<f64>) -> Self {
+        self.pixel_size = pixel_size;
+        self
+    }
+
+    /// What every frame's markers go through last: duplicate IDs flagged, the measured
+    /// scale's σ, and the calibrated scale applied.
+    fn finish(&self, mut markers: Vec<MarkerPose>) -> Vec<MarkerPose> {
+        flag_duplicate_ids(&mut markers);
+        for m in &mut markers {
+            let yaw_variance = m.covariance(self.period, m.window_px as f64)[5][5];
+            m.pixel_size_std = m.measured_pixel_size * yaw_variance.sqrt();
+            if let Some(pixel_size) = self.pixel_size {
+                m.pose = m.pose.with_pixel_size(pixel_size);
+            }
+        }
+        markers
     }
 
     /// Detects the markers of the next frame of a stream (servo loops, recordings), tracking
@@ -439,9 +493,8 @@ impl Detector {
             }
         };
         t.before = std::mem::replace(&mut t.last, found);
-        let mut markers: Vec<MarkerPose> = t.last.iter().map(MarkerPose::from).collect();
-        flag_duplicate_ids(&mut markers);
-        Ok(markers)
+        let markers = t.last.iter().map(MarkerPose::from).collect();
+        Ok(self.finish(markers))
     }
 
     /// How the frames given to [`Detector::detect_next`] were processed so far.
@@ -457,7 +510,7 @@ impl Detector {
     /// full-image types (periodic, Megarena). A `window_size` larger than the image is an
     /// [`Error::InvalidParameter`], never an empty list.
     pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<MarkerPose>> {
-        let mut markers: Vec<MarkerPose> = match &mut self.inner {
+        let markers = match &mut self.inner {
             Inner::Periodic(d) => vec![MarkerPose::from(&d.detect(image)?)],
             Inner::Megarena(d) => vec![MarkerPose::from(&d.detect(image)?)],
             Inner::Stamp(d) => {
@@ -473,8 +526,7 @@ impl Detector {
                 d.detect(image)?.iter().map(MarkerPose::from).collect()
             }
         };
-        flag_duplicate_ids(&mut markers);
-        Ok(markers)
+        Ok(self.finish(markers))
     }
 }
 
@@ -491,6 +543,8 @@ impl From<&PeriodicDetection> for MarkerPose {
             pose_3d_cue_strength: None,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
             yaw_std: None,
+            measured_pixel_size: found.pose.pixel_size,
+            pixel_size_std: 0.0,
         }
     }
 }
@@ -514,6 +568,8 @@ impl From<&MegarenaDetection> for MarkerPose {
             pose_3d_cue_strength,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
             yaw_std: None,
+            measured_pixel_size: pose.pixel_size,
+            pixel_size_std: 0.0,
         }
     }
 }
@@ -531,6 +587,8 @@ impl From<&StampDetection> for MarkerPose {
             pose_3d_cue_strength: None,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
             yaw_std: found.yaw_std,
+            measured_pixel_size: found.pose.pixel_size,
+            pixel_size_std: 0.0,
         }
     }
 }
@@ -548,6 +606,8 @@ impl From<&HpCodeMarker> for MarkerPose {
             pose_3d_cue_strength: None,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
             yaw_std: found.yaw_std,
+            measured_pixel_size: found.pose.pixel_size,
+            pixel_size_std: 0.0,
         }
     }
 }
@@ -577,6 +637,8 @@ mod tests {
             pose_3d_cue_strength: None,
             window_px: 256,
             yaw_std: None,
+            measured_pixel_size: 0.5,
+            pixel_size_std: 0.0,
         }
     }
 

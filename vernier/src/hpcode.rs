@@ -626,10 +626,11 @@ impl Measure<'_> {
         let (grid, field) = match refined {
             Some((refined, fit)) => {
                 log::debug!(
-                    "marker {}: field fit over {} px, {} iterations, {:.1} % inliers, \
+                    "marker {}: field fit over {} px, {} harmonics, {} iterations, {:.1} % inliers, \
                          residual σ {:.2e}, orientation σ {:.2e} rad",
                     reading.id,
                     fit.pixels,
+                    fit.harmonics,
                     fit.iterations,
                     100.0 * fit.inlier_fraction,
                     fit.residual_std,

@@ -108,6 +108,25 @@ impl Pose {
         }
     }
 
+    /// The same pose seen with a pixel size of `pixel_size` (pattern units per pixel) instead
+    /// of `self.pixel_size`: the pattern origin stays where the image shows it (same
+    /// [`Pose::origin_in_image`], pixels) and the rotation is kept, so the translation scales
+    /// by `pixel_size / self.pixel_size` (docs/design.md#calibrated-scale). Unchanged when
+    /// `self.pixel_size` is not positive.
+    pub fn with_pixel_size(&self, pixel_size: f64) -> Pose {
+        if self.pixel_size.is_nan() || self.pixel_size <= 0.0 {
+            return *self;
+        }
+        let ratio = pixel_size / self.pixel_size;
+        // t = (0, 0, z) + R·(x, y, 0): its image-plane part is linear in (x, y).
+        Pose {
+            x: self.x * ratio,
+            y: self.y * ratio,
+            pixel_size,
+            ..*self
+        }
+    }
+
     /// `aTb`: the pose of `other`'s pattern frame expressed in this pose's pattern frame
     /// (both measured in the same camera frame). This is what a flexure force sensor reads.
     pub fn relative(&self, other: &Pose) -> Isometry3<f64> {
@@ -181,5 +200,23 @@ mod tests {
         let rel = pose.relative(&other);
         assert!((rel.translation.vector - Vector3::new(3.0, 0.0, 0.0)).norm() < 1e-12);
         assert!(rel.rotation.angle() < 1e-12);
+    }
+
+    #[test]
+    fn a_calibrated_pixel_size_keeps_the_origin_in_the_image() {
+        let mut pose = Pose::from_origin_in_image(Vector2::new(480.0, -130.0), 0.3, 0.50001);
+        pose.beta = 0.1;
+        pose.gamma = -0.2;
+        let calibrated = pose.with_pixel_size(0.5);
+        let moved = calibrated.origin_in_image() - pose.origin_in_image();
+        assert!(moved.norm() < 1e-9, "{moved}");
+        assert_eq!(calibrated.pixel_size, 0.5);
+        assert_eq!(
+            (calibrated.alpha, calibrated.beta, calibrated.gamma),
+            (0.3, 0.1, -0.2)
+        );
+        // 480 px from the centre, a 2e-5 scale error is 1e-2 px of position.
+        let shift = Vector2::new(pose.x - calibrated.x, pose.y - calibrated.y).norm() / 0.5;
+        assert!((shift - 2e-5 * 497.3).abs() < 0.05 * shift, "{shift}");
     }
 }

@@ -213,6 +213,8 @@ pub struct FieldFit {
     pub pixels: usize,
     /// Gauss–Newton iterations run.
     pub iterations: usize,
+    /// Dot harmonics modelled (besides the two fundamentals).
+    pub harmonics: usize,
     /// Covariance of the last correction `(α₁, β₁, γ₁, α₂, β₂, γ₂)`, radians².
     covariance: Matrix6<f64>,
     /// Field centre `(x₀, y₀)` (image frame) and half-size `s` of the normalised coordinates.
@@ -863,6 +865,7 @@ fn fit_dot_field_generic(
                 inlier_fraction: step.inlier_fraction,
                 pixels: step.pixels,
                 iterations: iteration,
+                harmonics: model.harmonics.len(),
                 covariance: step.covariance,
                 frame: field.frame,
             });
