@@ -78,7 +78,7 @@
 //!   [`Polarity`]).
 //! - Measuring: [`phase`], [`periodic`], [`megarena`] (+ [`megarena_sequence`]), [`hpcode`]
 //!   (+ [`binarize`]), [`stamp`] (+ [`snapshot`]), [`detector`] (dispatch and [`MarkerPose`]),
-//!   [`pose`].
+//!   [`pose`], [`calibration`] (pixel size and its variation across the field).
 //! - Patterns: [`layout`] (periodic, Megarena, HP code, bitmap, fingerprint, custom),
 //!   [`pattern_file`] (JSON pattern files), [`render`] (synthetic images at a known pose),
 //!   [`export`] (PNG, SVG, GDSII, OASIS).
@@ -103,6 +103,7 @@ pub mod render;
 pub use pose::Pose;
 pub mod periodic;
 pub use periodic::{PeriodicDetector, PeriodicParams};
+pub mod calibration;
 pub mod detector;
 pub use detector::{Detector, DetectorConfig, DetectorSettings, MarkerKind, MarkerPose};
 pub mod export;

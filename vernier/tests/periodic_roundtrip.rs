@@ -280,3 +280,43 @@ fn demodulated_band_pass_loses_no_accuracy() {
     );
     assert!(worst < 1e-6, "{worst:.2e} rad");
 }
+
+#[test]
+fn tiles_of_a_grid_calibrate_the_pixel_size_within_its_sigma() {
+    use vernier::calibration::{calibrate, tile_samples};
+    // Three noisy 600 × 450 renders of one grid (9.3 px per period): 3 × 3 tiles each. The
+    // pooled pixel size must agree with the truth within 4σ, with no gradient beyond 4σ, and
+    // the tiles must scatter as their own σ say (χ²/dof near 1).
+    let (period, pixel_size) = (12.0, 12.0 / 9.3);
+    let layout = PeriodicLayout::new(period, 81, 81).unwrap();
+    let mut samples = Vec::new();
+    for seed in 0..3 {
+        let pose = Pose::planar(
+            1.3 * seed as f64,
+            -0.7,
+            0.31 + 0.01 * seed as f64,
+            pixel_size,
+        );
+        let mut opts = RenderOptions::new(600, 450);
+        opts.blur_sigma = 1.0;
+        opts.noise_std = 0.02;
+        opts.seed = seed;
+        let image = render(&layout, &pose, &opts).unwrap();
+        samples.extend(tile_samples(&image, period, Default::default(), 3).unwrap());
+    }
+    assert_eq!(samples.len(), 27);
+    let fit = calibrate(&samples).unwrap();
+    let (g, g_std) = (fit.gradient.unwrap(), fit.gradient_std.unwrap());
+    let chi2 = fit.chi2_per_dof.unwrap();
+    println!(
+        "pixel size {:.8} ± {:.1e} (truth {pixel_size:.8}), gradient ({:.1e} ± {:.1e}, {:.1e} \
+         ± {:.1e}) /px, χ²/dof {chi2:.2}",
+        fit.pixel_size, fit.pixel_size_std, g.x, g_std.x, g.y, g_std.y
+    );
+    assert!((fit.pixel_size - pixel_size).abs() < 4.0 * fit.pixel_size_std);
+    // Pooling 27 tiles: √27 ≈ 5× below one tile's σ (~1e-5 relative here).
+    let single = samples.iter().map(|s| s.std).fold(f64::INFINITY, f64::min);
+    assert!(fit.pixel_size_std < single / 4.0, "{} vs {single}", fit.pixel_size_std);
+    assert!(g.x.abs() < 4.0 * g_std.x && g.y.abs() < 4.0 * g_std.y);
+    assert!((0.3..3.0).contains(&chi2), "{chi2}");
+}
