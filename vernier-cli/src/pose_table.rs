@@ -59,6 +59,13 @@ pub struct PoseRow {
     /// CSV column), omitted for planar poses.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_3d_cue_strength: Option<f64>,
+    /// The marker's own measured scale, pattern units per pixel (`pixel_size` is the
+    /// calibrated one under `--pixel-size`), and its σ; JSON and JSON Lines only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub measured_pixel_size: Option<f64>,
+    /// Standard deviation of `measured_pixel_size`, pattern units per pixel.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pixel_size_std: Option<f64>,
 }
 
 /// Column names, in order.
@@ -119,6 +126,8 @@ impl PoseRow {
                         duplicate_id: Some(m.duplicate_id),
                         decode_confidence: m.decode_confidence,
                         pose_3d_cue_strength: m.pose_3d_cue_strength,
+                        measured_pixel_size: Some(m.measured_pixel_size),
+                        pixel_size_std: Some(m.pixel_size_std),
                         ..base.clone()
                     }
                 })
@@ -171,8 +180,8 @@ fn csv_escape(s: &str) -> String {
 pub enum TableFormat {
     /// One JSON object per image: `image`, `markers` (each with `id`, `x`, `y`, `z`, `alpha`,
     /// `beta`, `gamma`, `pixel_size`, `x_px`, `y_px`, `quality`, `duplicate_id`,
-    /// `decode_confidence`, and `pose_3d_cue_strength` with `--pose-3d`), `time_ms`
-    /// and, for a failed image, `error`.
+    /// `decode_confidence`, `measured_pixel_size`, `pixel_size_std`, and
+    /// `pose_3d_cue_strength` with `--pose-3d`), `time_ms` and, for a failed image, `error`.
     Json,
     /// Comma-separated values with a header line, one row per image and marker.
     Csv,
@@ -232,6 +241,10 @@ impl<W: Write> TableWriter<W> {
                 // Only poses with out-of-plane angles have a cue strength.
                 if let Some(cue) = r.pose_3d_cue_strength {
                     m["pose_3d_cue_strength"] = serde_json::json!(cue);
+                }
+                if let (Some(s), Some(std)) = (r.measured_pixel_size, r.pixel_size_std) {
+                    m["measured_pixel_size"] = serde_json::json!(s);
+                    m["pixel_size_std"] = serde_json::json!(std);
                 }
                 m
             })
@@ -348,7 +361,7 @@ pub fn read_table(text: &str) -> Result<Vec<PoseRow>, String> {
             decode_confidence: number(15)?,
             time_ms: number(16)?.unwrap_or(0.0),
             error: text_field(17),
-            pose_3d_cue_strength: None,
+            ..PoseRow::default()
         });
     }
     Ok(rows)
@@ -379,7 +392,7 @@ mod tests {
                 decode_confidence: Some(0.75),
                 time_ms: 12.5,
                 error: None,
-                pose_3d_cue_strength: None,
+                ..PoseRow::default()
             },
             PoseRow {
                 frame: 1,

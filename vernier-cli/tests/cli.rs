@@ -2,7 +2,7 @@
 
 mod common;
 
-use common::{example_pattern, scratch, vernier};
+use common::{example_pattern, s, scratch, vernier};
 
 #[test]
 fn render_then_detect_round_trip_json_and_csv() {
@@ -259,4 +259,73 @@ fn detect_pose_3d_prints_the_out_of_plane_angles() {
     assert_eq!(marker["beta"].as_f64(), Some(0.0), "{line}");
     assert_eq!(marker["gamma"].as_f64(), Some(0.0), "{line}");
     assert!(marker.get("pose_3d_cue_strength").is_none(), "{line}");
+}
+
+#[test]
+fn calibrate_pools_tiles_and_detect_takes_the_calibrated_pixel_size() {
+    // A grid filling 640 × 480 px at 0.9 units per pixel, 1 % noise, seen twice.
+    let dir = scratch("calibrate");
+    let pattern = dir.join("grid.json");
+    std::fs::write(
+        &pattern,
+        r#"{"PeriodicPattern": {"unit": "um", "period": 12.0, "nRows": 61, "nCols": 61}}"#,
+    )
+    .unwrap();
+    let mut images = Vec::new();
+    for (k, pose) in ["1.0,2.0,0.2", "-3.0,0.5,0.21"].iter().enumerate() {
+        let image = dir.join(format!("grid{k}.png"));
+        let status = vernier()
+            .args(["render", "--pattern", s(&pattern), "--pose", pose])
+            .args(["--pixel-size", "0.9", "--size", "640x480", "--bits", "16"])
+            .args(["--blur", "1", "--noise", "0.01", "--seed", &k.to_string()])
+            .arg(&image)
+            .status()
+            .unwrap();
+        assert!(status.success());
+        images.push(image);
+    }
+    let out = vernier()
+        .args(["calibrate", "--json", "--pattern", s(&pattern)])
+        .args(&images)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let fit = &json["calibration"];
+    let (size, std) = (
+        fit["pixel_size"].as_f64().unwrap(),
+        fit["pixel_size_std"].as_f64().unwrap(),
+    );
+    // Two whole images and 2 × 9 tiles.
+    assert_eq!(json["samples"].as_array().unwrap().len(), 20, "{json}");
+    assert!((size - 0.9).abs() < 4.0 * std && std < 1e-5, "{fit}");
+    assert!(fit["gradient"].is_array(), "{fit}");
+
+    // detect --pixel-size: positions with the given scale, the measured one beside it.
+    let out = vernier()
+        .args(["detect", "--pattern", s(&pattern), "--pixel-size", "0.9"])
+        .arg(&images[0])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let marker = &json["markers"][0];
+    assert_eq!(marker["pixel_size"].as_f64(), Some(0.9));
+    let measured = marker["measured_pixel_size"].as_f64().unwrap();
+    let measured_std = marker["pixel_size_std"].as_f64().unwrap();
+    assert!((measured - 0.9).abs() < 5.0 * measured_std && measured_std > 0.0);
+    // A calibrated pixel size out of range is a one-line error.
+    let out = vernier()
+        .args(["detect", "--pattern", s(&pattern), "--pixel-size", "-1"])
+        .arg(&images[0])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("pixel_size"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
 }

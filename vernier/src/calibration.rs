@@ -14,10 +14,9 @@
 //! scatter more than their own σ predict (vibration between images, focus drift): honest
 //! either way.
 
-use crate::detector::{Detector, DetectorConfig, MarkerPose};
+use crate::detector::{Detector, MarkerPose};
 use crate::error::{Error, Result};
-use crate::grey_image::{GreyImage, Polarity};
-use crate::periodic::PeriodicParams;
+use crate::grey_image::GreyImage;
 use nalgebra::{Matrix3, Vector2, Vector3};
 
 /// One measurement of the pixel size at a point of the field.
@@ -33,12 +32,21 @@ pub struct ScaleSample {
 }
 
 impl ScaleSample {
-    /// The sample a detected marker gives (its measured scale at its origin), for an image
-    /// whose centre pixel is `center` (`(C div 2, R div 2)`); `None` when its σ is not a
-    /// positive number.
-    pub fn from_marker(marker: &MarkerPose, center: (usize, usize)) -> Option<Self> {
+    /// The sample a detected marker gives: its measured scale, placed where it was measured
+    /// — its origin for the marker types that search (HP codes, stamps), the image centre for
+    /// those measured over the whole image (periodic, Megarena: no decode confidence or a
+    /// window as large as the image). `image_size` `(width, height)`, pixels. `None` when the
+    /// scale or its σ is not a positive number.
+    pub fn from_marker(marker: &MarkerPose, image_size: (usize, usize)) -> Option<Self> {
+        let (w, h) = image_size;
+        let whole_image = marker.window_px >= w.min(h);
+        let center = Vector2::new((w / 2) as f64, (h / 2) as f64);
         let sample = ScaleSample {
-            position_px: marker.origin_px - Vector2::new(center.0 as f64, center.1 as f64),
+            position_px: if whole_image {
+                Vector2::zeros()
+            } else {
+                marker.origin_px - center
+            },
             pixel_size: marker.measured_pixel_size,
             std: marker.pixel_size_std,
         };
@@ -143,15 +151,14 @@ fn spans_two_directions(samples: &[&ScaleSample]) -> bool {
     small >= 1.0 && small >= 1e-4 * large
 }
 
-/// Scale samples from `tiles × tiles` tiles of an image filled by a dot grid of period `period`
-/// (pattern units): a periodic or Megarena pattern under the whole field of view. Each tile is
-/// measured by the phase engine on its own (the Megarena's missing lines barely move a tile's
-/// lobes); tiles where no grid is found are skipped. `tiles` in `1..=16`, each tile at least
-/// 32 px.
+/// Scale samples from `tiles × tiles` tiles of an image filled by one pattern (a periodic or
+/// Megarena pattern under the whole field of view), each measured on its own by `detector`
+/// (the pattern's own detector: a Megarena's missing lines would bias a plain grid fit by
+/// ~1e-4 in a tile); tiles where nothing is found are skipped. `tiles` in `1..=16`, each tile
+/// at least 32 px.
 pub fn tile_samples(
     image: &GreyImage,
-    period: f64,
-    polarity: Polarity,
+    detector: &mut Detector,
     tiles: usize,
 ) -> Result<Vec<ScaleSample>> {
     if !(1..=16).contains(&tiles) {
@@ -171,34 +178,42 @@ pub fn tile_samples(
             ),
         ));
     }
-    let mut params = PeriodicParams::new(period);
-    params.polarity = polarity;
-    let mut detector = Detector::new(DetectorConfig::Periodic(params))?;
     let center = image.center();
     let mut samples = Vec::new();
+    let mut skipped = None;
     for row in 0..tiles {
         for col in 0..tiles {
             let tile = image.crop(col * tw, row * th, tw, th)?;
-            let Ok(found) = detector.detect(&tile) else {
-                continue;
+            let found = match detector.detect(&tile) {
+                Ok(found) => found,
+                Err(e) => {
+                    skipped.get_or_insert(e);
+                    continue;
+                }
             };
-            let Some(m) = found.first() else { continue };
             // Measured over the whole tile: placed at the tile's centre pixel.
             let (tc, tr) = tile.center();
-            let sample = ScaleSample {
-                position_px: Vector2::new(
-                    (col * tw + tc) as f64 - center.0 as f64,
-                    (row * th + tr) as f64 - center.1 as f64,
-                ),
-                pixel_size: m.measured_pixel_size,
-                std: m.pixel_size_std,
-            };
-            if sample.is_usable() {
-                samples.push(sample);
+            let position = Vector2::new(
+                (col * tw + tc) as f64 - center.0 as f64,
+                (row * th + tr) as f64 - center.1 as f64,
+            );
+            for m in &found {
+                if let Some(s) = ScaleSample::from_marker(m, (tw, th)) {
+                    samples.push(ScaleSample {
+                        position_px: position + s.position_px,
+                        ..s
+                    });
+                }
             }
         }
     }
-    Ok(samples)
+    match (samples.is_empty(), skipped) {
+        (true, Some(e)) => Err(Error::parameter(
+            "tiles",
+            format!("no tile of {tiles} × {tiles} could be measured ({e}); use fewer tiles"),
+        )),
+        _ => Ok(samples),
+    }
 }
 
 #[cfg(test)]

@@ -290,6 +290,10 @@ fn tiles_of_a_grid_calibrate_the_pixel_size_within_its_sigma() {
     let (period, pixel_size) = (12.0, 12.0 / 9.3);
     let layout = PeriodicLayout::new(period, 81, 81).unwrap();
     let mut samples = Vec::new();
+    let mut detector = vernier::Detector::new(vernier::DetectorConfig::Periodic(
+        PeriodicParams::new(period),
+    ))
+    .unwrap();
     for seed in 0..3 {
         let pose = Pose::planar(
             1.3 * seed as f64,
@@ -302,7 +306,7 @@ fn tiles_of_a_grid_calibrate_the_pixel_size_within_its_sigma() {
         opts.noise_std = 0.02;
         opts.seed = seed;
         let image = render(&layout, &pose, &opts).unwrap();
-        samples.extend(tile_samples(&image, period, Default::default(), 3).unwrap());
+        samples.extend(tile_samples(&image, &mut detector, 3).unwrap());
     }
     assert_eq!(samples.len(), 27);
     let fit = calibrate(&samples).unwrap();
@@ -316,7 +320,11 @@ fn tiles_of_a_grid_calibrate_the_pixel_size_within_its_sigma() {
     assert!((fit.pixel_size - pixel_size).abs() < 4.0 * fit.pixel_size_std);
     // Pooling 27 tiles: √27 ≈ 5× below one tile's σ (~1e-5 relative here).
     let single = samples.iter().map(|s| s.std).fold(f64::INFINITY, f64::min);
-    assert!(fit.pixel_size_std < single / 4.0, "{} vs {single}", fit.pixel_size_std);
+    assert!(
+        fit.pixel_size_std < single / 4.0,
+        "{} vs {single}",
+        fit.pixel_size_std
+    );
     assert!(g.x.abs() < 4.0 * g_std.x && g.y.abs() < 4.0 * g_std.y);
     assert!((0.3..3.0).contains(&chi2), "{chi2}");
 }
