@@ -344,32 +344,43 @@ struct Pixel {
     index: usize,
 }
 
+/// SIMD width the harmonic bank is laid out for (4 doubles: one AVX2 register).
+const LANES: usize = 4;
+/// Capacity of the harmonic bank: [`MAX_HARMONICS`] rounded up to whole [`LANES`].
+const BANK: usize = MAX_HARMONICS.div_ceil(LANES) * LANES;
+
 /// The modelled harmonics' exponentials `e^{ih·φ}` at the current pixel, advanced column by
 /// column along a row (one complex product per harmonic instead of a power product), with
-/// their amplitudes and demodulation sums; structure of arrays, so the loops vectorise.
+/// their amplitudes and demodulation sums; structure of arrays padded to whole SIMD lanes
+/// (the padding has zero amplitude), so every loop runs over whole lanes and vectorises.
 struct HarmonicBank {
+    /// Harmonics modelled.
     n: usize,
-    orders: [(i32, i32); MAX_HARMONICS],
-    re: [f64; MAX_HARMONICS],
-    im: [f64; MAX_HARMONICS],
-    step_re: [f64; MAX_HARMONICS],
-    step_im: [f64; MAX_HARMONICS],
-    amp_re: [f64; MAX_HARMONICS],
-    amp_im: [f64; MAX_HARMONICS],
-    h1: [f64; MAX_HARMONICS],
-    h2: [f64; MAX_HARMONICS],
+    /// `n` rounded up to whole lanes: the loops' length.
+    padded: usize,
+    orders: [(i32, i32); BANK],
+    re: [f64; BANK],
+    im: [f64; BANK],
+    step_re: [f64; BANK],
+    step_im: [f64; BANK],
+    amp_re: [f64; BANK],
+    amp_im: [f64; BANK],
+    h1: [f64; BANK],
+    h2: [f64; BANK],
     /// `Σ ψ·e^{−ih·φ}` (re, im).
-    sum_re: [f64; MAX_HARMONICS],
-    sum_im: [f64; MAX_HARMONICS],
+    sum_re: [f64; BANK],
+    sum_im: [f64; BANK],
 }
 
 impl HarmonicBank {
     /// The bank of `harmonics` (orders and amplitudes) for `planes`.
     fn new(harmonics: &[((i32, i32), Complex64)], planes: &[PhasePlane; 2]) -> Self {
-        let zero = [0.0; MAX_HARMONICS];
+        let zero = [0.0; BANK];
+        let n = harmonics.len().min(MAX_HARMONICS);
         let mut bank = HarmonicBank {
-            n: harmonics.len().min(MAX_HARMONICS),
-            orders: [(0, 0); MAX_HARMONICS],
+            n,
+            padded: n.div_ceil(LANES) * LANES,
+            orders: [(0, 0); BANK],
             re: zero,
             im: zero,
             step_re: zero,
@@ -381,7 +392,7 @@ impl HarmonicBank {
             sum_re: zero,
             sum_im: zero,
         };
-        for (k, &((h1, h2), a)) in harmonics.iter().take(MAX_HARMONICS).enumerate() {
+        for (k, &((h1, h2), a)) in harmonics.iter().take(n).enumerate() {
             let step =
                 Complex64::from_polar(1.0, h1 as f64 * planes[0].a + h2 as f64 * planes[1].a);
             bank.orders[k] = (h1, h2);
@@ -410,12 +421,14 @@ impl HarmonicBank {
     /// Exponentials `columns` pixels further along the row.
     #[inline(always)]
     fn advance(&mut self, columns: usize) {
-        let n = self.n;
+        let m = self.padded;
         for _ in 0..columns {
-            for k in 0..n {
-                let (r, i) = (self.re[k], self.im[k]);
-                self.re[k] = r * self.step_re[k] - i * self.step_im[k];
-                self.im[k] = r * self.step_im[k] + i * self.step_re[k];
+            let (re, im) = (&mut self.re[..m], &mut self.im[..m]);
+            let (sr, si) = (&self.step_re[..m], &self.step_im[..m]);
+            for k in 0..m {
+                let (r, i) = (re[k], im[k]);
+                re[k] = r * sr[k] - i * si[k];
+                im[k] = r * si[k] + i * sr[k];
             }
         }
     }
@@ -424,20 +437,22 @@ impl HarmonicBank {
     /// (`d/dφ_l Re(A e^{ih·φ}) = −h_l·Im(A e^{ih·φ})`).
     #[inline(always)]
     fn evaluate(&self) -> (f64, [f64; 2]) {
-        // Four independent partial sums per quantity (the unused entries have A = 0).
-        const LANES: usize = 4;
+        // One partial sum per lane (lane-wise arithmetic: one vector register each).
         let (mut value, mut s1, mut s2) = ([0.0; LANES], [0.0; LANES], [0.0; LANES]);
-        let chunks = self.n.div_ceil(LANES).min(MAX_HARMONICS / LANES + 1);
-        for c in 0..chunks {
+        let m = self.padded;
+        let chunks = self.re[..m]
+            .chunks_exact(LANES)
+            .zip(self.im[..m].chunks_exact(LANES))
+            .zip(self.amp_re[..m].chunks_exact(LANES))
+            .zip(self.amp_im[..m].chunks_exact(LANES))
+            .zip(self.h1[..m].chunks_exact(LANES))
+            .zip(self.h2[..m].chunks_exact(LANES));
+        for (((((er, ei), ar), ai), h1), h2) in chunks {
             for lane in 0..LANES {
-                let k = (c * LANES + lane).min(MAX_HARMONICS - 1);
-                let live = if c * LANES + lane < self.n { 1.0 } else { 0.0 };
-                let (er, ei) = (self.re[k], self.im[k]);
-                let (ar, ai) = (live * self.amp_re[k], live * self.amp_im[k]);
-                value[lane] += ar * er - ai * ei;
-                let v_im = ar * ei + ai * er;
-                s1[lane] -= self.h1[k] * v_im;
-                s2[lane] -= self.h2[k] * v_im;
+                value[lane] += ar[lane] * er[lane] - ai[lane] * ei[lane];
+                let v_im = ar[lane] * ei[lane] + ai[lane] * er[lane];
+                s1[lane] -= h1[lane] * v_im;
+                s2[lane] -= h2[lane] * v_im;
             }
         }
         let total = |v: [f64; LANES]| (v[0] + v[1]) + (v[2] + v[3]);
@@ -447,9 +462,12 @@ impl HarmonicBank {
     /// Adds `ψ·e^{−ih·φ}` to the demodulation sums.
     #[inline(always)]
     fn demodulate(&mut self, psi: f64) {
-        for k in 0..self.n {
-            self.sum_re[k] += psi * self.re[k];
-            self.sum_im[k] -= psi * self.im[k];
+        let m = self.padded;
+        let (sr, si) = (&mut self.sum_re[..m], &mut self.sum_im[..m]);
+        let (re, im) = (&self.re[..m], &self.im[..m]);
+        for k in 0..m {
+            sr[k] += psi * re[k];
+            si[k] -= psi * im[k];
         }
     }
 
