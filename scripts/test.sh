@@ -38,3 +38,19 @@ VERNIER_ROS_PROFILE=test bash test/run_interop.sh
 echo "== cargo check/clippy --features rerun (vernier-cli)"
 cargo check -p vernier-cli --features rerun --all-targets --locked
 cargo clippy -p vernier-cli --features rerun --all-targets --locked -- -D warnings
+# The optional `vernier live` (cargo feature `opencv`, never in the default build): the system's
+# OpenCV 4 and libclang (the bindings are generated at build time), GStreamer's base plugins
+# for the tests' pipelines; then the lints and its tests (videos written by OpenCV's
+# VideoWriter read back through `vernier live`, 16-bit GStreamer frames, error paths, Ctrl-C).
+echo "== cargo clippy/test --features opencv (vernier-cli)"
+need=()
+for package in libopencv-dev clang libclang-dev gstreamer1.0-plugins-base; do
+    dpkg-query -W -f='${Status}' "$package" 2>/dev/null | grep -q "ok installed" ||
+        need+=("$package")
+done
+if [ "${#need[@]}" -gt 0 ]; then
+    sudo_cmd=""; [ "$(id -u)" -ne 0 ] && sudo_cmd="sudo"
+    $sudo_cmd apt-get update -qq && $sudo_cmd apt-get install -y -qq "${need[@]}"
+fi
+cargo clippy -p vernier-cli --features opencv --all-targets --locked -- -D warnings
+cargo test -p vernier-cli --features opencv --locked --bins --test live_cli

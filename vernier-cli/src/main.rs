@@ -4,8 +4,12 @@
 
 mod bag;
 mod batch;
+mod calibrate;
+mod detector_flags;
 mod export_cmd;
 mod inputs;
+#[cfg(feature = "opencv")]
+mod live;
 mod plot;
 mod pose_table;
 mod rerun_log;
@@ -14,10 +18,9 @@ mod stats;
 use clap::{Parser, Subcommand};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use vernier::detector::{DetectorSettings, MarkerKind};
 use vernier::pattern_file::Pattern;
 use vernier::render::{render, RenderOptions, Sampling};
-use vernier::{Detector, Polarity, Pose};
+use vernier::Pose;
 
 #[derive(Parser)]
 #[command(
@@ -45,74 +48,28 @@ enum Command {
     Bag(bag::BagArgs),
     /// Noise of a pose table per marker and relative pair (robust second differences).
     Stats(stats::StatsArgs),
+    /// Pixel size with its uncertainty, and its variation across the field, from images of
+    /// markers (give it back with `detect --pixel-size`).
+    Calibrate(calibrate::CalibrateArgs),
+    /// Detect markers live in frames from a camera, V4L2 device, GStreamer pipeline or video
+    /// file (OpenCV; cargo feature `opencv`).
+    #[cfg(feature = "opencv")]
+    Live(live::LiveArgs),
 }
 
 #[derive(Parser)]
 struct DetectArgs {
-    /// JSON pattern file describing the marker (PeriodicPattern, HPCodePattern, ...).
-    #[arg(long)]
-    pattern: Option<PathBuf>,
-    /// Marker type when no pattern file is given: periodic, hpcode, stamp or megarena.
-    #[arg(long = "type", default_value = "periodic")]
-    marker_type: MarkerKind,
-    /// Shorthand for `--type hpcode`.
-    #[arg(long)]
-    hpcode: bool,
-    /// Shorthand for `--type megarena`.
-    #[arg(long)]
-    megarena: bool,
-    /// Shorthand for `--type stamp`.
-    #[arg(long)]
-    stamp: bool,
-    /// Physical period of the dot grid, pattern units (µm by convention).
-    #[arg(long, allow_hyphen_values = true)]
-    period: Option<f64>,
-    /// HP code width in half-period cells (33, 37, ...).
-    #[arg(long)]
-    code_size: Option<usize>,
-    /// Megarena LFSR bit depth (4–12).
-    #[arg(long)]
-    code_depth: Option<u32>,
-    /// Side of the window analysed around each marker, pixels (8–32768, at most the
-    /// image's larger side).
-    #[arg(long)]
-    window_size: Option<usize>,
+    /// Marker type, pattern file and detector settings (shared with `vernier live`).
+    #[command(flatten)]
+    detector: detector_flags::DetectorFlags,
     /// Largest image read, pixels (`100M`, `2.5G`, `4000000`): a larger image (by its
     /// header, before decoding) is an error naming this limit. Default 100M.
     #[arg(long, value_parser = parse_max_pixels, default_value = "100M")]
     max_pixels: u64,
-    /// Stamp bitmap PNG files (1 = dot), in ID order; repeat the flag for several.
-    #[arg(long)]
-    bitmap: Vec<PathBuf>,
     /// Output format: `json` (one object per image), or `csv` / `jsonl` (one row per image
     /// and marker, time-series columns of vernier-cli/src/pose_table.rs).
     #[arg(long, value_enum, default_value = "json")]
     format: pose_table::TableFormat,
-    /// Also measure the out-of-plane angles `beta` (about the pattern's y axis) and `gamma`
-    /// (about its x axis), radians: 6-DoF pose, orthographic model, `z` stays 0. Megarena
-    /// only (ignored for other marker types). Of the two mirror solutions `(beta, gamma)` and
-    /// `(-beta, -gamma)` the perspective cue's choice is printed, its strength (0-1) in the
-    /// JSON as `pose_3d_cue_strength`.
-    #[arg(long = "pose-3d")]
-    pose_3d: bool,
-    /// HP codes: keep the analysis window's planes instead of refining each decoded marker on
-    /// its whole regular dot field (docs/design.md#field-fit): faster, less precise.
-    #[arg(long = "no-field-fit")]
-    no_field_fit: bool,
-    /// Treat the images as one sequence, in order, and track the markers from frame to frame
-    /// (HP codes: the finder search runs on the first frame, on loss and every
-    /// `--reacquire-every` frames; same poses as without it while markers move less than half
-    /// a period per frame).
-    #[arg(long)]
-    track: bool,
-    /// With `--track`, run the full search every this many frames (new markers are found
-    /// then); 0 = only when a marker is lost.
-    #[arg(long, value_name = "FRAMES", default_value_t = 30)]
-    reacquire_every: usize,
-    /// Dot polarity: `auto` (default: found per marker for HP codes and stamps, bright for
-    /// periodic and Megarena), `bright` dots on a dark background or `dark` dots on a bright one.
-    #[arg(long, default_value = "auto")]
-    polarity: PolarityArg,
     /// Also log every frame to rerun (needs the `rerun` cargo feature): `spawn` a viewer,
     /// `connect` to a running one (or give its `rerun+http://HOST:PORT/proxy` URL), or write a
     /// `FILE.rrd`. Logs the image, markers and their axes, the spectrum with its lobes, the
@@ -172,6 +129,19 @@ fn main() -> ExitCode {
             let _ = e.print();
             return ExitCode::from(2);
         }
+        // `vernier live` exists only with the `opencv` feature: say how to get it.
+        #[cfg(not(feature = "opencv"))]
+        Err(e)
+            if e.kind() == clap::error::ErrorKind::InvalidSubcommand
+                && std::env::args().nth(1).as_deref() == Some("live") =>
+        {
+            eprintln!(
+                "vernier: this `vernier` was built without `live` (OpenCV); rebuild it with \
+                 `cargo install --path vernier-cli --features opencv` (needs libopencv-dev, \
+                 clang and libclang-dev)"
+            );
+            return ExitCode::from(2);
+        }
         // Usage errors: one line, like every other failure, naming what is wrong.
         Err(e) => {
             eprintln!("vernier: {}", usage_error_line(&e));
@@ -185,6 +155,9 @@ fn main() -> ExitCode {
         Command::Plot(args) => plot::run(&args),
         Command::Bag(args) => bag::run(&args),
         Command::Stats(args) => stats::run(&args),
+        Command::Calibrate(args) => calibrate::run(&args),
+        #[cfg(feature = "opencv")]
+        Command::Live(args) => live::run(&args),
     };
     match result {
         Ok(code) => code,
@@ -232,34 +205,12 @@ fn load_pattern(path: &Path) -> Result<Pattern, String> {
 }
 
 fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
-    let pattern_type = if args.hpcode {
-        MarkerKind::HpCode
-    } else if args.megarena {
-        MarkerKind::Megarena
-    } else if args.stamp {
-        MarkerKind::Stamp
-    } else {
-        args.marker_type
-    };
-    let settings = DetectorSettings {
-        pattern_type,
-        pattern_file: args.pattern.clone(),
-        period: args.period,
-        code_size: args.code_size,
-        code_depth: args.code_depth,
-        window_size: args.window_size,
-        polarity: args.polarity.0,
-        bitmaps: args.bitmap.clone(),
-        pose_3d: args.pose_3d,
-        field_fit: Some(!args.no_field_fit),
-    };
-    let config = settings.to_config().map_err(|e| e.to_string())?;
-    let mut detector = Detector::new(config).map_err(|e| e.to_string())?;
+    let mut detector = args.detector.detector()?;
     let images = inputs::expand_inputs(&args.images)?;
     let mut rerun = match &args.rerun {
         Some(target) => Some(rerun_log::RerunLog::open(
             target,
-            args.polarity.0.unwrap_or_default(),
+            args.detector.display_polarity(),
         )?),
         None => None,
     };
@@ -269,7 +220,7 @@ fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
         &images,
         &limits,
         args.format,
-        args.track.then_some(args.reacquire_every),
+        args.detector.tracking(),
         rerun.as_mut(),
     )?;
     if let Some(rerun) = rerun {
@@ -342,17 +293,4 @@ fn render_image(args: &RenderArgs) -> Result<ExitCode, String> {
 /// `--max-pixels`: a pixel count (`100M`, `4000000`), at least 1.
 fn parse_max_pixels(text: &str) -> Result<u64, String> {
     vernier::limits::parse_pixel_count(text)
-}
-
-/// `--polarity auto|bright|dark` (`auto` = `None`).
-#[derive(Clone, Copy, Debug)]
-struct PolarityArg(Option<Polarity>);
-
-impl std::str::FromStr for PolarityArg {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        vernier::parse_polarity_setting(s)
-            .map(PolarityArg)
-            .map_err(|e| e.to_string())
-    }
 }
