@@ -179,6 +179,9 @@ pub struct Tally {
     pub errors: usize,
     /// Position errors of the found markers, pixels.
     pub position_errors: Vec<f64>,
+    /// Largest position error (pixels) and the seed of its scene, to reproduce it with
+    /// `--only SEED`.
+    pub worst: Option<(f64, u64)>,
     /// Largest angle error, radians.
     pub max_angle_error: f64,
     /// Total detection time, milliseconds.
@@ -198,6 +201,11 @@ impl Tally {
         self.missed += r.missed;
         self.errors += usize::from(r.error.is_some());
         self.position_errors.extend(&r.position_errors);
+        for &e in &r.position_errors {
+            if self.worst.is_none_or(|(w, _)| e > w) {
+                self.worst = Some((e, o.scene.spec.seed));
+            }
+        }
         self.max_angle_error = r
             .angle_errors
             .iter()
@@ -217,6 +225,11 @@ impl Tally {
         self.missed += other.missed;
         self.errors += other.errors;
         self.position_errors.extend(&other.position_errors);
+        if let Some((e, seed)) = other.worst {
+            if self.worst.is_none_or(|(w, _)| e > w) {
+                self.worst = Some((e, seed));
+            }
+        }
         self.max_angle_error = self.max_angle_error.max(other.max_angle_error);
         self.detect_ms += other.detect_ms;
         self.failing.extend(&other.failing);
@@ -285,14 +298,17 @@ impl Report {
     pub fn markdown(&self, family: Family) -> String {
         let mut out = format!(
             "### {}\n\n| category | scenes | markers | found % | wrong ID or pose | false markers | missed | \
-             position error median / p99 / max (px) | max angle error (rad) | detect ms/scene |\n\
+             position error median / p99 / max (px) (seed of the max) | max angle error (rad) | \
+             detect ms/scene |\n\
              |---|---:|---:|---:|---:|---:|---:|---|---:|---:|\n",
             family.name()
         );
         let row = |name: &str, t: &Tally| {
-            let pos = match t.position_stats() {
-                Some((m, p, x)) => format!("{m:.1e} / {p:.1e} / {x:.1e}"),
-                None => "—".into(),
+            let pos = match (t.position_stats(), t.worst) {
+                (Some((m, p, x)), Some((_, seed))) => {
+                    format!("{m:.1e} / {p:.1e} / {x:.1e} ({seed})")
+                }
+                _ => "—".into(),
             };
             let errors = if t.errors > 0 {
                 format!(" ({} det. errors)", t.errors)

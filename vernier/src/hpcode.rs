@@ -618,8 +618,12 @@ impl Measure<'_> {
         if support < MIN_GRID_SUPPORT {
             return reject(&format!("grid support {support:.3} < {MIN_GRID_SUPPORT}"));
         }
+        let (icx, icy) = image.center();
+        let image_center = Vector2::new(icx as f64, icy as f64);
+        let at = grid.dots.center - image_center;
         let refined = if self.params.field_fit {
             fine::refine_on_field(image, &grid, reading.id, reading.mirrored)
+                .filter(|(_, fit)| fit.beats_window(analysis.phase_std, at.x, at.y))
         } else {
             None
         };
@@ -641,15 +645,13 @@ impl Measure<'_> {
             None => {
                 if self.params.field_fit {
                     log::debug!(
-                        "marker {}: no whole-field fit, window planes kept",
+                        "marker {}: no whole-field fit or a less precise one, window planes kept",
                         reading.id
                     );
                 }
                 (grid, None)
             }
         };
-        let (icx, icy) = image.center();
-        let image_center = Vector2::new(icx as f64, icy as f64);
         let (phase_std, yaw_std) = match &field {
             Some(fit) => {
                 let c = grid.dots.center - image_center;

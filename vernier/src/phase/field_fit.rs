@@ -101,7 +101,7 @@ const MIN_NODES: usize = 16;
 /// but the sharpest dots, are then left out).
 const MIN_BINNED_PERIOD: f64 = 6.0;
 /// Largest binning factor.
-const MAX_BINNING: usize = 4;
+const MAX_BINNING: usize = 2;
 /// Two components of the model must differ by at least this many cycles per field side to be
 /// told apart.
 const MIN_SEPARATION_CYCLES: f64 = 2.0;
@@ -209,6 +209,9 @@ pub struct FieldFit {
     pub residual_std: f64,
     /// Fraction of the field's layout weight that the robust weights kept, `[0, 1]`.
     pub inlier_fraction: f64,
+    /// Cells (one period around a regular node) whose robust weight is below 1: dust, hair,
+    /// scratches over the field. Noise alone never lowers a cell's weight ([`CELL_FULL`]).
+    pub spoiled_cells: usize,
     /// Pixels with a non-zero layout weight.
     pub pixels: usize,
     /// Gauss–Newton iterations run.
@@ -235,6 +238,21 @@ impl FieldFit {
             }
             var.max(0.0).sqrt()
         })
+    }
+
+    /// Whether this fit should replace a window fit whose offsets have σ `window_phase_std`
+    /// (radians) at the image-frame point `(x, y)`:
+    ///
+    /// * when the field has spoiled cells, always: the window weighs every pixel alike, so the
+    ///   same dust or hair may bias it while its σ, a noise figure, cannot show it;
+    /// * otherwise the estimator with the smaller predicted position σ is kept (both
+    ///   predictions are checked against the real scatter in tests/efficiency.rs). The field
+    ///   model stops at order-[`MAX_ORDER`] harmonics: on nearly noise-free images of sharp dots
+    ///   many pixels wide its residual is model error, which the window's band-pass never
+    ///   sees, and the window wins.
+    pub fn beats_window(&self, window_phase_std: [f64; 2], x: f64, y: f64) -> bool {
+        let norm = |s: [f64; 2]| s[0].hypot(s[1]);
+        self.spoiled_cells > 0 || norm(self.phase_std_at(x, y)) < norm(window_phase_std)
     }
 
     /// Standard deviation of the mean gradient direction `(θ₁ + θ₂)/2` of the two planes,
@@ -881,6 +899,12 @@ fn fit_dot_field_generic(
                 amplitudes: [model.linear[3].abs(), model.linear[6].abs()],
                 residual_std: step.residual_std,
                 inlier_fraction: step.inlier_fraction,
+                spoiled_cells: model
+                    .cells
+                    .iter()
+                    .zip(&mask.regular)
+                    .filter(|(w, regular)| **regular && **w < 1.0)
+                    .count(),
                 pixels: step.pixels,
                 iterations: iteration,
                 harmonics: model.harmonics.len(),

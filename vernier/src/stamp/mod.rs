@@ -759,7 +759,14 @@ impl StampDetector {
                 found.vote
             );
         }
-        let field = self.refine_on_field(image, &found, &planes, origin);
+        let (icx, icy) = image.center();
+        let at = Vector2::new(
+            (center.0 - icx as i64) as f64,
+            (center.1 - icy as i64) as f64,
+        );
+        let field = self
+            .refine_on_field(image, &found, &planes, origin)
+            .filter(|(_, fit)| fit.beats_window(analysis.phase_std, at.x, at.y));
         let planes = field.as_ref().map_or(planes, |(p, _)| *p);
         Ok(self
             .detection(found, &planes, origin, image, frame, center, size, analysis)
