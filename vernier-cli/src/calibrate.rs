@@ -42,7 +42,7 @@ pub struct CalibrateArgs {
 #[derive(serde::Serialize)]
 struct Sourced {
     image: String,
-    /// `marker ID` or `tile (col, row)`.
+    /// `marker ID`, or `tile` (its position says which).
     source: String,
     #[serde(flatten)]
     sample: ScaleSample,
@@ -58,7 +58,11 @@ pub fn run(args: &CalibrateArgs) -> Result<ExitCode, String> {
     let config = settings.to_config().map_err(|e| e.to_string())?;
     let tiles = args
         .tiles
-        .unwrap_or(if matches!(config, DetectorConfig::Periodic(_)) { 3 } else { 0 });
+        .unwrap_or(if matches!(config, DetectorConfig::Periodic(_)) {
+            3
+        } else {
+            0
+        });
     let images = crate::inputs::expand_inputs(&args.images)?;
     let limits = DecodeLimits::with_max_pixels(args.max_pixels);
     let progress = progress_bar(images.len() as u64, "images");
@@ -67,31 +71,15 @@ pub fn run(args: &CalibrateArgs) -> Result<ExitCode, String> {
         let name = path.display().to_string();
         let image =
             GreyImage::open_with_limits(path, &limits).map_err(|e| format!("{name}: {e}"))?;
-        match detector.detect(&image) {
-            Ok(markers) => {
-                for m in &markers {
-                    let size = (image.width(), image.height());
-                    if let Some(sample) = ScaleSample::from_marker(m, size) {
-                        samples.push(Sourced {
-                            image: name.clone(),
-                            source: format!("marker {}", m.id),
-                            sample,
-                        });
-                    }
-                }
-            }
-            Err(e) => progress.suspend(|| eprintln!("vernier: {name}: {e}")),
+        let (found, failures) = image_samples(&mut detector, &image, tiles);
+        for e in failures {
+            progress.suspend(|| eprintln!("vernier: {name}: {e}"));
         }
-        if tiles > 0 {
-            match tile_samples(&image, &mut detector, tiles) {
-                Ok(found) => samples.extend(found.into_iter().map(|sample| Sourced {
-                    image: name.clone(),
-                    source: "tile".into(),
-                    sample,
-                })),
-                Err(e) => progress.suspend(|| eprintln!("vernier: {name}: {e}")),
-            }
-        }
+        samples.extend(found.into_iter().map(|(source, sample)| Sourced {
+            image: name.clone(),
+            source,
+            sample,
+        }));
         progress.inc(1);
     }
     progress.finish_and_clear();
@@ -104,6 +92,30 @@ pub fn run(args: &CalibrateArgs) -> Result<ExitCode, String> {
         print_text(&fit, &samples);
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The scale samples of one image, named (`marker ID`, `tile`): its markers, then its
+/// `tiles × tiles` tiles (none for 0); and what failed.
+fn image_samples(
+    detector: &mut vernier::Detector,
+    image: &GreyImage,
+    tiles: usize,
+) -> (Vec<(String, ScaleSample)>, Vec<String>) {
+    let (mut found, mut failures) = (Vec::new(), Vec::new());
+    match detector.detect(image) {
+        Ok(markers) => found.extend(markers.iter().filter_map(|m| {
+            ScaleSample::from_marker(m, (image.width(), image.height()))
+                .map(|s| (format!("marker {}", m.id), s))
+        })),
+        Err(e) => failures.push(e.to_string()),
+    }
+    if tiles > 0 {
+        match tile_samples(image, detector, tiles) {
+            Ok(t) => found.extend(t.into_iter().map(|s| ("tile".to_string(), s))),
+            Err(e) => failures.push(e.to_string()),
+        }
+    }
+    (found, failures)
 }
 
 fn print_text(fit: &Calibration, samples: &[Sourced]) {
