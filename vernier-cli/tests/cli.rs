@@ -2,7 +2,7 @@
 
 mod common;
 
-use common::{example_pattern, s, scratch, vernier};
+use common::{example_pattern, s, scratch, stdout_of_success, vernier};
 
 #[test]
 fn render_then_detect_round_trip_json_and_csv() {
@@ -27,18 +27,13 @@ fn render_then_detect_round_trip_json_and_csv() {
         .status()
         .unwrap();
     assert!(status.success());
-    let out = vernier()
-        .args(["detect", "--pattern"])
-        .arg(example_pattern())
-        .arg(&image)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let out = stdout_of_success(
+        vernier()
+            .args(["detect", "--pattern"])
+            .arg(example_pattern())
+            .arg(&image),
     );
-    let line = String::from_utf8(out.stdout).unwrap();
+    let line = String::from_utf8(out).unwrap();
     let json: serde_json::Value = serde_json::from_str(line.trim()).unwrap();
     // Default format: one JSON object per image.
     assert_eq!(json["image"].as_str().unwrap(), image.display().to_string());
@@ -284,17 +279,12 @@ fn calibrate_pools_tiles_and_detect_takes_the_calibrated_pixel_size() {
         assert!(status.success());
         images.push(image);
     }
-    let out = vernier()
-        .args(["calibrate", "--json", "--pattern", s(&pattern)])
-        .args(&images)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let out = stdout_of_success(
+        vernier()
+            .args(["calibrate", "--json", "--pattern", s(&pattern)])
+            .args(&images),
     );
-    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let json: serde_json::Value = serde_json::from_slice(&out).unwrap();
     let fit = &json["calibration"];
     let (size, std) = (
         fit["pixel_size"].as_f64().unwrap(),

@@ -14,6 +14,17 @@ pub fn run(args: &[&str]) -> Output {
     vernier().args(args).output().expect("cannot run vernier")
 }
 
+/// The stdout of a command that must succeed (the failure shows its stderr).
+pub fn stdout_of_success(command: &mut Command) -> Vec<u8> {
+    let out = command.output().expect("cannot run vernier");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out.stdout
+}
+
 /// A fresh, empty scratch folder for this test process and `name`.
 pub fn scratch(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("vernier_cli_{}_{name}", std::process::id()));
