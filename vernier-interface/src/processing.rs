@@ -740,6 +740,39 @@ mod tests {
     }
 
     #[test]
+    fn a_calibrated_pixel_size_is_published_beside_the_measured_one() {
+        // The grid is rendered at 1 µm per pixel; the node is told 1.001 µm (in metres).
+        let frame = grid_frame(&vernier::Pose::planar(0.5, 0.25, 0.1, 1.0));
+        let measure = |calibrated: Option<f64>| {
+            let mut values = vec![("period", ParamValue::Double(8.0))];
+            if let Some(v) = calibrated {
+                values.push(("pixel_size", ParamValue::Double(v)));
+            }
+            let mut processor =
+                Processor::new(params(&values), 0).unwrap_or_else(|e| panic!("{e}"));
+            let (out, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+            out.markers.markers[0].clone()
+        };
+        let (own, calibrated) = (measure(None), measure(Some(1.001e-6)));
+        assert_eq!(calibrated.pixel_size, 1.001e-6);
+        assert_eq!(calibrated.measured_pixel_size, own.pixel_size);
+        assert!((own.measured_pixel_size - 1e-6).abs() < 1e-10);
+        assert!(own.measured_pixel_size_std > 0.0 && own.measured_pixel_size_std < 1e-10);
+        // Same image position, converted with the given scale.
+        let ratio = calibrated.pose.position.x / own.pose.position.x;
+        assert!(
+            (ratio * own.pixel_size / 1.001e-6 - 1.0).abs() < 1e-9,
+            "{ratio}"
+        );
+        // Out of range (10 cm per pixel is the largest) is refused with the parameter's name.
+        let refused = params(&[("period", ParamValue::Double(8.0))])
+            .with("pixel_size", &ParamValue::Double(0.5))
+            .map(|_| ())
+            .unwrap_err();
+        assert!(refused.contains("pixel_size"), "{refused}");
+    }
+
+    #[test]
     fn relative_pairs_give_b_in_a_frame() {
         // Two synthetic markers (as a multi-marker detector would report them), µm.
         let p = params(&[
