@@ -54,8 +54,10 @@ pub fn run(args: &CalibrateArgs) -> Result<ExitCode, String> {
     if settings.pixel_size.is_some() {
         return Err("--pixel-size is what `calibrate` measures: leave it out".into());
     }
-    let mut detector = args.detector.detector()?;
+    // One configuration (the pattern file read once) for the detector and the tile default;
+    // no calibrated scale to apply (refused above).
     let config = settings.to_config().map_err(|e| e.to_string())?;
+    let mut detector = vernier::Detector::new(config.clone()).map_err(|e| e.to_string())?;
     let tiles = args
         .tiles
         .unwrap_or(if matches!(config, DetectorConfig::Periodic(_)) {

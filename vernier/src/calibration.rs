@@ -34,9 +34,9 @@ pub struct ScaleSample {
 impl ScaleSample {
     /// The sample a detected marker gives: its measured scale, placed where it was measured
     /// — its origin for the marker types that search (HP codes, stamps), the image centre for
-    /// those measured over the whole image (periodic, Megarena: no decode confidence or a
-    /// window as large as the image). `image_size` `(width, height)`, pixels. `None` when the
-    /// scale or its σ is not a positive number.
+    /// those measured over the whole image (periodic, Megarena: an analysis window as large as
+    /// the image). `image_size` `(width, height)`, pixels. `None` when the scale or its σ is
+    /// not a positive number.
     pub fn from_marker(marker: &MarkerPose, image_size: (usize, usize)) -> Option<Self> {
         let (w, h) = image_size;
         let whole_image = marker.window_px >= w.min(h);
