@@ -116,7 +116,15 @@ impl GreyImage {
                 width * height
             )));
         }
-        if let Some(i) = pixels.iter().position(|v| !v.is_finite()) {
+        // One vectorised pass (no early exit) to learn whether a sample is not finite; only
+        // then the search for the first one, for the message.
+        let all_finite = pixels
+            .chunks(4096)
+            .all(|c| c.iter().fold(true, |ok, v| ok & v.is_finite()));
+        if let Some(i) = (!all_finite)
+            .then(|| pixels.iter().position(|v| !v.is_finite()))
+            .flatten()
+        {
             return Err(Error::InvalidImage(format!(
                 "pixel ({}, {}) is not a finite number ({})",
                 i % width,
@@ -276,9 +284,15 @@ impl GreyImage {
                 .chunks_exact(4)
                 .map(|p| luma16(p[0], p[1], p[2]))
                 .collect(),
-            other => other.to_luma32f().into_raw(),
+            // Floating-point samples may hold NaN or infinities: checked.
+            other => return Self::new(w, h, other.to_luma32f().into_raw()),
         };
-        Self::new(w, h, pixels)
+        // Integer samples scaled to [0, 1] are finite: no second pass over the image.
+        Ok(GreyImage {
+            width: w,
+            height: h,
+            pixels,
+        })
     }
 
     /// Width `C`, pixels (columns).

@@ -517,7 +517,18 @@ impl HarmonicBank {
                 s2[lane] -= b2r[lane] * ei[lane] + b2i[lane] * er[lane];
             }
         }
-        let total = |v: [f32; LANES]| v.iter().map(|&x| x as f64).sum::<f64>();
+        // A pairwise (tree) sum of the lanes: four short dependent steps, not sixteen.
+        let total = |v: [f32; LANES]| {
+            let mut v = v;
+            let mut width = LANES / 2;
+            while width > 0 {
+                for k in 0..width {
+                    v[k] += v[k + width];
+                }
+                width /= 2;
+            }
+            v[0] as f64
+        };
         (total(value), [total(s1), total(s2)])
     }
 
