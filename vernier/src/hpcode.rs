@@ -408,9 +408,10 @@ impl HpCodeDetector {
         Ok(same.then_some(found))
     }
 
-    /// The markers of `triples`, in their order: contiguous runs of triples measured on
-    /// separate threads (each with its own engine), joined in order, so that the result is
-    /// the sequential one whatever the thread count.
+    /// The markers of `triples`, in their order. Each thread (with its own engine) takes the
+    /// next triple not yet taken, so that the costly ones (real markers, each with its field
+    /// fit) spread over the cores wherever they sit in the list; the results are put back in
+    /// the triples' order, the sequential result whatever the thread count.
     fn measure_all(
         &mut self,
         image: &GreyImage,
@@ -425,39 +426,48 @@ impl HpCodeDetector {
             self.workers.push(MarkerWorker::default());
         }
         let params = &self.params;
-        let measure_run = |worker: &mut MarkerWorker, run: &[FinderTriple]| {
+        let next = std::sync::atomic::AtomicUsize::new(0);
+        // Measures triples from the shared queue: (triple index, result) pairs.
+        let take_and_measure = |worker: &mut MarkerWorker| {
             let mut measure = Measure::new(params, worker);
             let mut found = Vec::new();
-            for triple in run {
-                found.extend(measure.measure(image, triple)?);
+            loop {
+                let k = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let Some(triple) = triples.get(k) else {
+                    return found;
+                };
+                found.push((k, measure.measure(image, triple)));
             }
-            Ok(found)
         };
-        if threads == 1 {
-            return measure_run(&mut self.workers[0], triples);
-        }
-        let run_length = triples.len().div_ceil(threads);
-        let runs: Vec<Result<Vec<HpCodeMarker>>> = std::thread::scope(|s| {
-            let handles: Vec<_> = self
-                .workers
-                .iter_mut()
-                .zip(triples.chunks(run_length))
-                .map(|(worker, run)| s.spawn(move || measure_run(worker, run)))
-                .collect();
-            handles
-                .into_iter()
-                .map(|h| {
-                    h.join().unwrap_or_else(|_| {
-                        Err(Error::PatternNotFound(
-                            "internal: a marker-measuring thread panicked".into(),
-                        ))
+        let mut results: Vec<(usize, Result<Option<HpCodeMarker>>)> = if threads == 1 {
+            take_and_measure(&mut self.workers[0])
+        } else {
+            std::thread::scope(|s| {
+                let handles: Vec<_> = self
+                    .workers
+                    .iter_mut()
+                    .take(threads)
+                    .map(|worker| s.spawn(|| take_and_measure(worker)))
+                    .collect();
+                handles
+                    .into_iter()
+                    .flat_map(|h| {
+                        h.join().unwrap_or_else(|_| {
+                            vec![(
+                                0,
+                                Err(Error::PatternNotFound(
+                                    "internal: a marker-measuring thread panicked".into(),
+                                )),
+                            )]
+                        })
                     })
-                })
-                .collect()
-        });
+                    .collect()
+            })
+        };
+        results.sort_by_key(|(k, _)| *k);
         let mut markers = Vec::with_capacity(triples.len());
-        for run in runs {
-            markers.extend(run?);
+        for (_, result) in results {
+            markers.extend(result?);
         }
         Ok(markers)
     }

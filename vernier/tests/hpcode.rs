@@ -137,7 +137,8 @@ fn synthetic_scenes_every_marker_found_with_its_id_and_pose() {
 
 #[test]
 fn thread_count_never_changes_the_result() {
-    // Five markers: runs of triples on 1, 2 and 3 threads give the sequential result exactly.
+    // Five markers measured on 1, 2 and 3 threads (each thread takes the next triple) give the
+    // sequential result exactly.
     let mut rng = SmallRng::seed_from_u64(77);
     let (image, truth) = random_scene(&mut rng, 5, 33, (900, 700));
     let detect = |threads: usize| {
