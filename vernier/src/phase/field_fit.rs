@@ -380,6 +380,9 @@ struct Pixel {
 /// advances) is far below the noise, and the demodulation sums go to double precision at the
 /// end of every row.
 const LANES: usize = 16;
+/// Longest gap, in columns, that the harmonic bank advances across; beyond it the bank is
+/// seeded afresh (about the cost of this many advances).
+const MAX_ADVANCE: usize = 8;
 /// Capacity of the harmonic bank: [`MAX_HARMONICS`] rounded up to whole [`LANES`].
 const BANK: usize = MAX_HARMONICS.div_ceil(LANES) * LANES;
 
@@ -470,6 +473,18 @@ impl HarmonicBank {
             let e = harmonic(&powers, h1, h2);
             self.re[k] = e.re as f32;
             self.im[k] = e.im as f32;
+        }
+    }
+
+    /// Exponentials at pixel `p`: advanced from the previous pixel of its row when it is a
+    /// few columns away, computed afresh at the start of a row and across a longer gap of
+    /// unweighted pixels (a finder, missing dots), where advancing column by column would cost
+    /// more than the powers.
+    #[inline(always)]
+    fn move_to(&mut self, p: &Pixel) {
+        match p.advance {
+            columns @ 1..=MAX_ADVANCE => self.advance(columns),
+            _ => self.seed(&p.z),
         }
     }
 
@@ -993,10 +1008,7 @@ fn first_model(
     let mut fundamentals = [Complex64::default(); 2];
     let (mut total, mut mean, mut sum_x, mut sum_y) = (0.0, 0.0, 0.0, 0.0);
     for p in field.pixels(image, &planes, mask, &[]) {
-        match p.advance {
-            0 => bank.seed(&p.z),
-            columns => bank.advance(columns),
-        }
+        bank.move_to(&p);
         total += p.w;
         sum_x += p.w * p.xn;
         sum_y += p.w * p.yn;
@@ -1082,10 +1094,7 @@ fn iterate(
     let mut basis = [0.0f64; UNKNOWNS];
     let mut bank = HarmonicBank::new(&model.harmonics, &model.planes);
     for p in field.pixels(image, &model.planes, mask, &model.cells) {
-        match p.advance {
-            0 => bank.seed(&p.z),
-            columns => bank.advance(columns),
-        }
+        bank.move_to(&p);
         let (h, h_slope) = bank.evaluate();
         let gain = model.gain(&p);
         let data = p.g - h;
