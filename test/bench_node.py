@@ -10,7 +10,7 @@ every result. Reports, per marker kind:
   * node CPU time per processed frame (user + system, /proc/<pid>/stat).
 
     test/run_bench.sh [--kind periodic|hpcode|hpcode_5mp|both] [--duration 30]
-                      [--rates 30,60] [--tracking on|off|both]
+                      [--rates 30,60] [--tracking on|off|both] [--field-fit on|off]
 
 `--kind hpcode` runs the node with `pattern_type:=hpcode code_size:=33 marker_ids:=[37, 300]
 relative_pairs:=['37:300']` (both poses, the relative pose and /tf published per frame);
@@ -18,7 +18,8 @@ relative_pairs:=['37:300']` (both poses, the relative pose and /tf published per
 sequence (each marker drifts 0.4 px and turns 1 mrad per frame; the cycle's jump back to the
 first frame is a loss, found again by the full search), so that tracking can follow them.
 `both` runs a fresh node per kind (periodic, hpcode) and prints both tables. `--tracking`
-runs the node with `tracking:=true`, `false`, or a fresh node for each.
+runs the node with `tracking:=true`, `false`, or a fresh node for each; `--field-fit off` sets
+`field_fit:=false` (the analysis window's planes: the speed setting for servo loops).
 
 Frames are serialised once and only their stamp is patched before each write, so the Python
 publisher keeps up at 60 Hz (Cyclone's own C writer sends them)."""
@@ -175,7 +176,9 @@ def bench_kind(kind, domain, work, args, tracking):
     frames = [(frames_dir / f["file"]).read_bytes() for f in truth["frames"]]
     log = work / f"node_{kind}_{tracking}.log"
     node = harness.start_node(
-        domain, [*spec["params"], "-p", f"tracking:={tracking}", "--log-level", "error"], log)
+        domain, [*spec["params"], "-p", f"tracking:={tracking}",
+                 "-p", f"field_fit:={'true' if args.field_fit == 'on' else 'false'}",
+                 "--log-level", "error"], log)
     peer = harness.RosPeer(domain, marker_ids=spec["ids"], relative_pairs=spec["pairs"])
     try:
         if not peer.wait_for_node():
@@ -194,9 +197,10 @@ def bench_kind(kind, domain, work, args, tracking):
     return rows
 
 
-def print_table(kind, tracking, rows, duration):
+def print_table(kind, tracking, field_fit, rows, duration):
     w, h = KINDS[kind].get("shape", (SIZE, SIZE))
     print(f"detector node, {w}x{h} mono8, {KINDS[kind]['label']}, tracking {tracking}, "
+          f"field fit {field_fit}, "
           f"{duration:.0f} s per rate, {os.cpu_count()} CPUs")
     print(f"{'rate Hz':>8} {'sent':>6} {'processed':>9} {'all found':>9} {'dropped':>8} "
           f"{'lost':>5} {'p50 ms':>8} {'p99 ms':>8} {'mean ms':>8} {'CPU ms/frame':>13}")
@@ -215,6 +219,8 @@ def main():
     parser.add_argument("--frames", type=int, default=8, help="distinct frames cycled")
     parser.add_argument("--tracking", choices=["on", "off", "both"], default="on",
                         help="the node's tracking parameter (both: a node for each)")
+    parser.add_argument("--field-fit", choices=["on", "off"], default="on",
+                        help="the node's field_fit parameter (whole-field fit of HP codes, stamps)")
     args = parser.parse_args()
     domain = int(os.environ.get("ROS_DOMAIN_ID", random.randint(1, 200)))
     work = Path(tempfile.mkdtemp(prefix="vernier_bench_"))
@@ -227,7 +233,7 @@ def main():
         domain_n = (domain + n - 1) % 200 + 1
         tables.append((kind, mode, bench_kind(kind, domain_n, work, args, mode)))
     for kind, mode, rows in tables:
-        print_table(kind, mode, rows, args.duration)
+        print_table(kind, mode, args.field_fit, rows, args.duration)
     return 0
 
 
