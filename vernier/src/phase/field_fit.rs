@@ -177,34 +177,65 @@ impl NodeMask {
     pub fn count(&self) -> usize {
         self.regular.iter().filter(|&&r| r).count()
     }
+}
+
+/// A mask's node weights for one sweep, padded by one node on every side so that a pixel's
+/// four surrounding nodes are looked up without bounds checks per node: per node, `[1, w]` if
+/// regular (`w` its robust weight) and `[0, 0]` otherwise.
+struct NodeWeights {
+    /// Node `(k₁, k₂)` of entry `(0, 0)`.
+    first: (i64, i64),
+    /// Padded extent: nodes along `k₁` (rows of `entries`) and along `k₂`.
+    dims: (usize, usize),
+    entries: Vec<[f64; 2]>,
+}
+
+impl NodeWeights {
+    /// The weights of `mask` with robust weights `nodes` (per mask node; empty: all 1).
+    fn new(mask: &NodeMask, nodes: &[f64]) -> Self {
+        let dims = (mask.dims.0 + 2, mask.dims.1 + 2);
+        let mut entries = vec![[0.0; 2]; dims.0 * dims.1];
+        for i in 0..mask.dims.0 {
+            for j in 0..mask.dims.1 {
+                let index = i * mask.dims.1 + j;
+                if mask.regular[index] {
+                    let robust = nodes.get(index).copied().unwrap_or(1.0);
+                    entries[(i + 1) * dims.1 + j + 1] = [1.0, robust];
+                }
+            }
+        }
+        NodeWeights {
+            first: (mask.first.0 - 1, mask.first.1 - 1),
+            dims,
+            entries,
+        }
+    }
 
     /// Layout weight of lattice coordinates `u` (see the module doc), in `[0, 1]`, and the same
-    /// with each node's term multiplied by its robust weight `nodes[index]` (1 where `nodes`
-    /// has no entry): still a sum of node kernels, so the harmonics stay orthogonal under it.
+    /// with each node's term multiplied by its robust weight: still a sum of node kernels, so
+    /// the harmonics stay orthogonal under it. `cos_pi_u` is `cos πu` per axis.
     #[inline(always)]
-    fn weight(&self, u: [f64; 2], cos_pi_u: [f64; 2], nodes: &[f64]) -> (f64, f64) {
-        let (f1, f2) = (u[0].floor(), u[1].floor());
-        let (k1, k2) = (f1 as i64, f2 as i64);
+    fn weight(&self, u: [f64; 2], cos_pi_u: [f64; 2]) -> (f64, f64) {
+        let (k1, k2) = (u[0].floor() as i64, u[1].floor() as i64);
+        let (i, j) = (k1 - self.first.0, k2 - self.first.1);
+        // Outside the padded table all four nodes are outside the mask.
+        if i < 0 || j < 0 || i as usize + 1 >= self.dims.0 || j as usize + 1 >= self.dims.1 {
+            return (0.0, 0.0);
+        }
+        let base = i as usize * self.dims.1 + j as usize;
+        let node = |offset: usize| self.entries.get(base + offset).copied().unwrap_or([0.0; 2]);
+        let (e00, e01) = (node(0), node(1));
+        let (e10, e11) = (node(self.dims.1), node(self.dims.1 + 1));
         // b(t) = cos²(πt/2) = (1 + cos πt)/2 at t = u − k, cos πt = (−1)^k·cos πu.
         let partition = |k: i64, c: f64| {
             let b = 0.5 + 0.5 * if k % 2 == 0 { c } else { -c };
             [b, 1.0 - b]
         };
         let (b1, b2) = (partition(k1, cos_pi_u[0]), partition(k2, cos_pi_u[1]));
-        let (mut layout, mut robust) = (0.0, 0.0);
-        for (i, wi) in b1.iter().enumerate() {
-            for (j, wj) in b2.iter().enumerate() {
-                let Some(index) = self.index(k1 + i as i64, k2 + j as i64) else {
-                    continue;
-                };
-                if self.regular[index] {
-                    let w = wi * wj;
-                    layout += w;
-                    robust += w * nodes.get(index).copied().unwrap_or(1.0);
-                }
-            }
-        }
-        (layout, robust)
+        let sum = |m: usize| {
+            b1[0] * (b2[0] * e00[m] + b2[1] * e01[m]) + b1[1] * (b2[0] * e10[m] + b2[1] * e11[m])
+        };
+        (sum(0), sum(1))
     }
 }
 
@@ -699,7 +730,7 @@ impl FieldBox {
             width: image.width(),
             planes: *planes,
             mask,
-            nodes,
+            weights: NodeWeights::new(mask, nodes),
             step: planes.map(|p| Complex64::from_polar(1.0, p.a)),
             half_step: planes.map(|p| Complex64::from_polar(1.0, 0.5 * p.a)),
             half: [Complex64::default(); 2],
@@ -720,7 +751,7 @@ struct FieldPixels<'a> {
     width: usize,
     planes: [PhasePlane; 2],
     mask: &'a NodeMask,
-    nodes: &'a [f64],
+    weights: NodeWeights,
     /// `e^{ia_l}`: one column's phase step.
     step: [Complex64; 2],
     /// `e^{ia_l/2}`.
@@ -772,7 +803,7 @@ impl Iterator for FieldPixels<'_> {
             self.z = [z[0] * self.step[0], z[1] * self.step[1]];
             self.half = [half[0] * self.half_step[0], half[1] * self.half_step[1]];
             let u = [self.planes[0].at(x, y) / TAU, self.planes[1].at(x, y) / TAU];
-            let (layout, w) = self.mask.weight(u, [half[0].re, half[1].re], self.nodes);
+            let (layout, w) = self.weights.weight(u, [half[0].re, half[1].re]);
             let g = self
                 .pixels
                 .get(row * self.width + col)
@@ -1334,7 +1365,8 @@ mod tests {
     #[test]
     fn layout_weight_is_a_partition_of_unity() {
         let mask = NodeMask::from_fn(-3..=3, -3..=3, |_, _| true);
-        let weight = |u: [f64; 2]| mask.weight(u, u.map(|v| (PI * v).cos()), &[]).0;
+        let plain = NodeWeights::new(&mask, &[]);
+        let weight = |u: [f64; 2]| plain.weight(u, u.map(|v| (PI * v).cos())).0;
         for &(u1, u2) in &[(0.0, 0.0), (0.3, -1.7), (2.49, 1.01), (-2.2, 2.9)] {
             assert!((weight([u1, u2]) - 1.0).abs() < 1e-12);
         }
@@ -1344,7 +1376,8 @@ mod tests {
         let nodes: Vec<f64> = (0..mask.len())
             .map(|i| if i == 24 { 0.0 } else { 1.0 })
             .collect();
-        let at = |u: [f64; 2]| mask.weight(u, u.map(|v| (PI * v).cos()), &nodes).1;
+        let robust = NodeWeights::new(&mask, &nodes);
+        let at = |u: [f64; 2]| robust.weight(u, u.map(|v| (PI * v).cos())).1;
         assert_eq!(at([0.0, 0.0]), 0.0);
         assert!((at([0.5, 0.0]) - 0.5).abs() < 1e-12 && at([1.0, 0.0]) == 1.0);
     }
