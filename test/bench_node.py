@@ -9,7 +9,7 @@ every result. Reports, per marker kind:
     (sent − processed − dropped);
   * node CPU time per processed frame (user + system, /proc/<pid>/stat).
 
-    test/run_bench.sh [--kind periodic|hpcode|hpcode_5mp|both] [--duration 30]
+    test/run_bench.sh [--kind periodic|hpcode|hpcode_5mp|megarena|both] [--duration 30]
                       [--rates 30,60] [--tracking on|off|both] [--field-fit on|off]
 
 `--kind hpcode` runs the node with `pattern_type:=hpcode code_size:=33 marker_ids:=[37, 300]
@@ -17,7 +17,9 @@ relative_pairs:=['37:300']` (both poses, the relative pose and /tf published per
 `--kind hpcode_5mp` is the same on 2456×2054 frames (a 5 MP microscope camera) forming a smooth
 sequence (each marker drifts 0.4 px and turns 1 mrad per frame; the cycle's jump back to the
 first frame is a loss, found again by the full search), so that tracking can follow them.
-`both` runs a fresh node per kind (periodic, hpcode) and prints both tables. `--tracking`
+`--kind megarena` renders 1024² frames of a 12-bit Megarena at random absolute positions
+(`pattern_type:=megarena code_depth:=12`). `both` runs a fresh node per kind (periodic, hpcode)
+and prints both tables. `--tracking`
 runs the node with `tracking:=true`, `false`, or a fresh node for each; `--field-fit off` sets
 `field_fit:=false` (the analysis window's planes: the speed setting for servo loops).
 
@@ -150,6 +152,14 @@ KINDS = {
         "ids": (37, 300),
         "pairs": [(37, 300)],
         "label": "2 HP codes (W 33) + relative pose",
+    },
+    "megarena": {
+        "render": [],
+        "params": ["-p", "pattern_type:=megarena", "-p", "period:=10.0", "-p", "code_depth:=12",
+                   "-p", "marker_ids:=[0]"],
+        "ids": (0,),
+        "pairs": [],
+        "label": "12-bit Megarena (absolute position), 1 % noise",
     },
     "hpcode_5mp": {
         "render": ["--ids", "37,300", "--code-size", "33", "--size", "2456", "--height", "2054",

@@ -2,13 +2,16 @@
 //! feeding the node from another process (interoperability test, benchmark, dry runs).
 //!
 //! ```text
-//! render_test_frames --out DIR [--kind periodic|hpcode] [--count N] [--size 1024]
+//! render_test_frames --out DIR [--kind periodic|hpcode|megarena] [--count N] [--size 1024]
 //!                    [--period 10] [--pixel-size 0.8] [--seed 1]
 //!                    [--code-size 33] [--ids 37,300]          (hpcode only)
 //!                    [--height H] [--motion PX]              (hpcode only)
 //! ```
 //!
 //! `--kind periodic` (default): one periodic dot grid per frame (reported as ID 0).
+//! `--kind megarena`: a 12-bit Megarena pattern per frame (reported as ID 0), each frame at a
+//! random absolute position of its field (within ±2 mm of a point 51 mm × 43 mm into it) and
+//! random orientation, with 1 % noise (the library's `megarena` bench scene).
 //! `--kind hpcode`: two HP code markers per frame, `--code-size` half-period cells wide
 //! (`W ≡ 1 mod 4`, node parameter `code_size`), with the two distinct IDs of `--ids` (first =
 //! `a`, second = `b`), each at its own random position (fully inside the image, apart from the
@@ -51,6 +54,8 @@ enum Kind {
     Periodic,
     /// Two HP code markers with distinct IDs.
     HpCode,
+    /// A 12-bit Megarena pattern (absolute position).
+    Megarena,
 }
 
 struct Args {
@@ -101,9 +106,10 @@ fn parse_args() -> Result<Args, String> {
                 args.kind = match value()?.as_str() {
                     "periodic" => Kind::Periodic,
                     "hpcode" => Kind::HpCode,
+                    "megarena" => Kind::Megarena,
                     other => {
                         return Err(format!(
-                            "`--kind`: expected periodic or hpcode, got `{other}`"
+                            "`--kind`: expected periodic, hpcode or megarena, got `{other}`"
                         ))
                     }
                 }
@@ -213,6 +219,34 @@ fn periodic_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
             rng.range(0.05, 1.5),
             args.pixel_size,
         );
+        let image = render(&layout, &pose, &options).map_err(|e| e.to_string())?;
+        let file = write_frame(args, i, &image)?;
+        frames.push(serde_json::json!({
+            "file": file,
+            "markers": [marker_truth(0, &pose)],
+        }));
+    }
+    Ok(frames)
+}
+
+/// Code depth of the Megarena frames (node parameter `code_depth`).
+const MEGARENA_CODE_DEPTH: u32 = 12;
+
+fn megarena_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
+    let layout = vernier::layout::MegarenaLayout::new(args.period, MEGARENA_CODE_DEPTH)
+        .map_err(|e| e.to_string())?;
+    let mut options = render_options(args.size);
+    options.noise_std = 0.01;
+    let mut rng = SplitMix(args.seed);
+    let mut frames = Vec::new();
+    for i in 0..args.count {
+        let pose = Pose::planar(
+            -51_234.5 + rng.range(-2_000.0, 2_000.0),
+            -43_210.9 + rng.range(-2_000.0, 2_000.0),
+            rng.range(-PI, PI),
+            args.pixel_size,
+        );
+        options.seed = args.seed.wrapping_add(i as u64);
         let image = render(&layout, &pose, &options).map_err(|e| e.to_string())?;
         let file = write_frame(args, i, &image)?;
         frames.push(serde_json::json!({
@@ -343,6 +377,15 @@ fn run(args: &Args) -> Result<(), String> {
             "pixel_size": args.pixel_size,
             "unit": "um",
             "frames": periodic_frames(args)?,
+        }),
+        Kind::Megarena => serde_json::json!({
+            "kind": "megarena",
+            "size": args.size,
+            "period": args.period,
+            "pixel_size": args.pixel_size,
+            "code_depth": MEGARENA_CODE_DEPTH,
+            "unit": "um",
+            "frames": megarena_frames(args)?,
         }),
         Kind::HpCode => serde_json::json!({
             "kind": "hpcode",
