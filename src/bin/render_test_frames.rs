@@ -204,22 +204,20 @@ fn marker_truth(id: u64, pose: &Pose) -> serde_json::Value {
     })
 }
 
-fn periodic_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
-    let diagonal = args.size as f64 * args.pixel_size * 1.5;
-    let dots = ((diagonal / args.period) as usize + 4) | 1;
-    let layout = PeriodicLayout::new(args.period, dots, dots).map_err(|e| e.to_string())?;
-    let options = render_options(args.size);
+/// Frames of one pattern (reported as ID 0), each at the pose `pose_of` draws; the noise of
+/// frame `i` is seeded with `seed + i`.
+fn single_pattern_frames(
+    args: &Args,
+    layout: &dyn Layout,
+    mut options: RenderOptions,
+    mut pose_of: impl FnMut(&mut SplitMix) -> Pose,
+) -> Result<Vec<serde_json::Value>, String> {
     let mut rng = SplitMix(args.seed);
     let mut frames = Vec::new();
     for i in 0..args.count {
-        let p = args.period;
-        let pose = Pose::planar(
-            rng.range(-0.4 * p, 0.4 * p),
-            rng.range(-0.4 * p, 0.4 * p),
-            rng.range(0.05, 1.5),
-            args.pixel_size,
-        );
-        let image = render(&layout, &pose, &options).map_err(|e| e.to_string())?;
+        let pose = pose_of(&mut rng);
+        options.seed = args.seed.wrapping_add(i as u64);
+        let image = render(layout, &pose, &options).map_err(|e| e.to_string())?;
         let file = write_frame(args, i, &image)?;
         frames.push(serde_json::json!({
             "file": file,
@@ -227,6 +225,21 @@ fn periodic_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
         }));
     }
     Ok(frames)
+}
+
+fn periodic_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
+    let diagonal = args.size as f64 * args.pixel_size * 1.5;
+    let dots = ((diagonal / args.period) as usize + 4) | 1;
+    let layout = PeriodicLayout::new(args.period, dots, dots).map_err(|e| e.to_string())?;
+    let p = args.period;
+    single_pattern_frames(args, &layout, render_options(args.size), |rng| {
+        Pose::planar(
+            rng.range(-0.4 * p, 0.4 * p),
+            rng.range(-0.4 * p, 0.4 * p),
+            rng.range(0.05, 1.5),
+            args.pixel_size,
+        )
+    })
 }
 
 /// Code depth of the Megarena frames (node parameter `code_depth`).
@@ -237,24 +250,14 @@ fn megarena_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
         .map_err(|e| e.to_string())?;
     let mut options = render_options(args.size);
     options.noise_std = 0.01;
-    let mut rng = SplitMix(args.seed);
-    let mut frames = Vec::new();
-    for i in 0..args.count {
-        let pose = Pose::planar(
+    single_pattern_frames(args, &layout, options, |rng| {
+        Pose::planar(
             -51_234.5 + rng.range(-2_000.0, 2_000.0),
             -43_210.9 + rng.range(-2_000.0, 2_000.0),
             rng.range(-PI, PI),
             args.pixel_size,
-        );
-        options.seed = args.seed.wrapping_add(i as u64);
-        let image = render(&layout, &pose, &options).map_err(|e| e.to_string())?;
-        let file = write_frame(args, i, &image)?;
-        frames.push(serde_json::json!({
-            "file": file,
-            "markers": [marker_truth(0, &pose)],
-        }));
-    }
-    Ok(frames)
+        )
+    })
 }
 
 /// Two HP code markers per frame at random, non-overlapping poses (both fully inside the
