@@ -202,9 +202,7 @@ impl Tally {
         self.errors += usize::from(r.error.is_some());
         self.position_errors.extend(&r.position_errors);
         for &e in &r.position_errors {
-            if self.worst.is_none_or(|(w, _)| e > w) {
-                self.worst = Some((e, o.scene.spec.seed));
-            }
+            self.note_worst(e, o.scene.spec.seed);
         }
         self.max_angle_error = r
             .angle_errors
@@ -213,6 +211,13 @@ impl Tally {
         self.detect_ms += r.detect_ms;
         if o.failed() {
             self.failing.push(o.scene.spec.seed);
+        }
+    }
+
+    /// Keeps `(error, seed)` as the worst position error if it is the largest so far.
+    fn note_worst(&mut self, error: f64, seed: u64) {
+        if self.worst.is_none_or(|(w, _)| error > w) {
+            self.worst = Some((error, seed));
         }
     }
 
@@ -226,9 +231,7 @@ impl Tally {
         self.errors += other.errors;
         self.position_errors.extend(&other.position_errors);
         if let Some((e, seed)) = other.worst {
-            if self.worst.is_none_or(|(w, _)| e > w) {
-                self.worst = Some((e, seed));
-            }
+            self.note_worst(e, seed);
         }
         self.max_angle_error = self.max_angle_error.max(other.max_angle_error);
         self.detect_ms += other.detect_ms;
