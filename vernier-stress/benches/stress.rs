@@ -151,6 +151,9 @@ fn main() -> ExitCode {
     println!(
         "Detector settings as a CLI user gives them: marker type, period, code size (HP) or the \
          four bitmaps (stamp); everything else default (polarity: auto). \
+         `error/σ` is each position error over the σ the detector predicts for it (from its \
+         phase σ): about 0.83 / 2.15 (median / p99) when the error is the image noise the \
+         detector accounts for, larger when something else moves the pose. \
          `detect ms/scene` is the time of `Detector::detect` only (generation excluded).\n"
     );
     for family in Family::ALL {

@@ -22,6 +22,11 @@ pub enum Verdict {
         position_error: f64,
         /// |angle difference|, radians.
         angle_error: f64,
+        /// The detector's own predicted σ of the origin, pixels: `P·√(σ_c1² + σ_c2²)/2π` from
+        /// [`MarkerPose::phase_std`] (`P` the true period in pixels), so that
+        /// `position_error / predicted_std_px` is Rayleigh-like (median 0.83, p99 2.15) when
+        /// the error is the noise the detector accounts for.
+        predicted_std_px: f64,
     },
     /// Matched truth `index`, another ID.
     WrongId {
@@ -54,6 +59,9 @@ pub struct SceneResult {
     pub position_errors: Vec<f64>,
     /// Angle errors of the found markers, radians.
     pub angle_errors: Vec<f64>,
+    /// Position errors of the found markers over their predicted σ (see
+    /// [`Verdict::Found::predicted_std_px`]), where that σ is positive and finite.
+    pub normalised_errors: Vec<f64>,
     /// One verdict per detection.
     pub verdicts: Vec<Verdict>,
     /// Detector error or panic message, if detection failed.
@@ -100,6 +108,7 @@ pub fn evaluate(
                 missed: markers,
                 position_errors: Vec::new(),
                 angle_errors: Vec::new(),
+                normalised_errors: Vec::new(),
                 verdicts: Vec::new(),
                 error: Some(e),
                 detect_ms,
@@ -138,6 +147,8 @@ pub fn evaluate(
                 truth: ti,
                 position_error: dist,
                 angle_error: wrap_to_pi(d.pose.alpha - t.angle).abs(),
+                predicted_std_px: t.period_px * d.phase_std[0].hypot(d.phase_std[1])
+                    / std::f64::consts::TAU,
             }
         } else {
             // A wrong ID, or the right ID with the marker turned (a quarter-turn reading of
@@ -153,6 +164,7 @@ pub fn evaluate(
         missed: 0,
         position_errors: Vec::new(),
         angle_errors: Vec::new(),
+        normalised_errors: Vec::new(),
         verdicts,
         error: None,
         detect_ms,
@@ -162,11 +174,15 @@ pub fn evaluate(
             Verdict::Found {
                 position_error,
                 angle_error,
+                predicted_std_px,
                 ..
             } => {
                 r.found += 1;
                 r.position_errors.push(position_error);
                 r.angle_errors.push(angle_error);
+                if predicted_std_px.is_finite() && predicted_std_px > 0.0 {
+                    r.normalised_errors.push(position_error / predicted_std_px);
+                }
             }
             Verdict::WrongId { .. } => r.wrong_id += 1,
             Verdict::Ignored { .. } => {}

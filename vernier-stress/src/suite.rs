@@ -179,6 +179,9 @@ pub struct Tally {
     pub errors: usize,
     /// Position errors of the found markers, pixels.
     pub position_errors: Vec<f64>,
+    /// Position errors over the detector's predicted σ (see
+    /// [`crate::evaluate::Verdict::Found`]).
+    pub normalised_errors: Vec<f64>,
     /// Largest position error (pixels) and the seed of its scene, to reproduce it with
     /// `--only SEED`.
     pub worst: Option<(f64, u64)>,
@@ -201,6 +204,7 @@ impl Tally {
         self.missed += r.missed;
         self.errors += usize::from(r.error.is_some());
         self.position_errors.extend(&r.position_errors);
+        self.normalised_errors.extend(&r.normalised_errors);
         for &e in &r.position_errors {
             self.note_worst(e, o.scene.spec.seed);
         }
@@ -230,6 +234,7 @@ impl Tally {
         self.missed += other.missed;
         self.errors += other.errors;
         self.position_errors.extend(&other.position_errors);
+        self.normalised_errors.extend(&other.normalised_errors);
         if let Some((e, seed)) = other.worst {
             self.note_worst(e, seed);
         }
@@ -249,14 +254,24 @@ impl Tally {
 
     /// `(median, p99, max)` of the position errors (nearest rank); `None` without any.
     pub fn position_stats(&self) -> Option<(f64, f64, f64)> {
-        let mut e = self.position_errors.clone();
-        if e.is_empty() {
-            return None;
-        }
-        e.sort_by(f64::total_cmp);
-        let rank = |q: f64| e[((q * e.len() as f64).ceil() as usize).clamp(1, e.len()) - 1];
-        Some((rank(0.5), rank(0.99), e[e.len() - 1]))
+        median_p99_max(&self.position_errors)
     }
+
+    /// `(median, p99, max)` of the normalised position errors; `None` without any.
+    pub fn normalised_stats(&self) -> Option<(f64, f64, f64)> {
+        median_p99_max(&self.normalised_errors)
+    }
+}
+
+/// `(median, p99, max)` of `values` (nearest rank); `None` when empty.
+fn median_p99_max(values: &[f64]) -> Option<(f64, f64, f64)> {
+    let mut e = values.to_vec();
+    if e.is_empty() {
+        return None;
+    }
+    e.sort_by(f64::total_cmp);
+    let rank = |q: f64| e[((q * e.len() as f64).ceil() as usize).clamp(1, e.len()) - 1];
+    Some((rank(0.5), rank(0.99), e[e.len() - 1]))
 }
 
 /// All tallies of a run, plus the generation-time profile.
@@ -301,9 +316,9 @@ impl Report {
     pub fn markdown(&self, family: Family) -> String {
         let mut out = format!(
             "### {}\n\n| category | scenes | markers | found % | wrong ID or pose | false markers | missed | \
-             position error median / p99 / max (px) (seed of the max) | max angle error (rad) | \
-             detect ms/scene |\n\
-             |---|---:|---:|---:|---:|---:|---:|---|---:|---:|\n",
+             position error median / p99 / max (px) (seed of the max) | error/σ median / p99 | \
+             max angle error (rad) | detect ms/scene |\n\
+             |---|---:|---:|---:|---:|---:|---:|---|---|---:|---:|\n",
             family.name()
         );
         let row = |name: &str, t: &Tally| {
@@ -313,13 +328,18 @@ impl Report {
                 }
                 _ => "—".into(),
             };
+            let normalised = match t.normalised_stats() {
+                Some((m, p, _)) => format!("{m:.2} / {p:.2}"),
+                None => "—".into(),
+            };
             let errors = if t.errors > 0 {
                 format!(" ({} det. errors)", t.errors)
             } else {
                 String::new()
             };
             format!(
-                "| {name} | {} | {} | {:.1} | {} | {} | {}{errors} | {pos} | {:.1e} | {:.1} |\n",
+                "| {name} | {} | {} | {:.1} | {} | {} | {}{errors} | {pos} | {normalised} | {:.1e} | \
+                 {:.1} |\n",
                 t.scenes,
                 t.markers,
                 100.0 * t.found_fraction(),

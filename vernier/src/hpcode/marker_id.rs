@@ -297,16 +297,19 @@ pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &D
     if n < 9 {
         return false;
     }
-    let Some(threshold) = bridge_threshold(image, polarity, grid) else {
-        return false;
-    };
-    let ink = |p: Vector2<f64>| -> Option<f64> {
-        Some(f64::from(u8::from(
-            dot_level(image, polarity, p, grid)? > threshold,
-        )))
-    };
-    // Ink fractions of the bridges, the diagonals and the dots of the 4×4 dots from (r0, c0).
+    // Ink fractions of the bridges, the diagonals and the dots of the 4×4 dots from (r0, c0),
+    // against the threshold of the 4×4 inner dots next to that corner: vignetting or an
+    // illumination gradient may move the level by more than the dot contrast across the
+    // marker (all ink at one corner, none at the other, against one threshold), and the
+    // nearest block keeps dust over one block to its own corner.
     let corner = |(r0, c0): (usize, usize)| -> Option<(f64, f64, f64)> {
+        let (rows, cols) = (inner_block(r0, n), inner_block(c0, n));
+        let threshold = bridge_threshold(image, polarity, grid, rows, cols)?;
+        let ink = |p: Vector2<f64>| -> Option<f64> {
+            Some(f64::from(u8::from(
+                dot_level(image, polarity, p, grid)? > threshold,
+            )))
+        };
         let (mut bridges, mut diagonals, mut dots) = (0.0, 0.0, 0.0);
         for r in r0..r0 + 4 {
             for c in c0..c0 + 4 {
@@ -353,14 +356,30 @@ pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &D
     separated(|c| c.0, 1, 0.3, 0.4) || separated(|c| c.0 - c.1, 0, 0.2, 0.25)
 }
 
-/// Threshold halfway between the median level of the marker's inner dots and of the bridges
-/// between them (which blur lifts towards the dots, while a finder's solid ring stays at least
-/// as bright as a dot); `None` when the dots do not stand out or a sample is outside the image.
-fn bridge_threshold(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> Option<f64> {
-    let n = grid.size;
+/// The four rows (or columns) of inner dots `4..n − 4` next to the corner block that starts at
+/// `start` (0 or `n − 4`); all of them when there are fewer (`n ≥ 9`).
+fn inner_block(start: usize, n: usize) -> std::ops::Range<usize> {
+    if start == 0 {
+        4..(n - 4).min(8)
+    } else {
+        (n - 8).max(4)..n - 4
+    }
+}
+
+/// Threshold halfway between the median level of the inner dots in `rows` × `cols` and of the
+/// bridges beside them (which blur lifts towards the dots, while a finder's solid ring stays at
+/// least as bright as a dot); `None` when the dots do not stand out or a sample is outside the
+/// image.
+fn bridge_threshold(
+    image: &GreyImage,
+    polarity: Polarity,
+    grid: &DotGrid,
+    rows: std::ops::Range<usize>,
+    cols: std::ops::Range<usize>,
+) -> Option<f64> {
     let (mut dots, mut bridges) = (Vec::new(), Vec::new());
-    for r in 4..n - 4 {
-        for c in 4..n - 4 {
+    for r in rows {
+        for c in cols.clone() {
             let (r, c) = (r as f64, c as f64);
             dots.push(dot_level(image, polarity, grid.at(r, c), grid)?);
             bridges.push(dot_level(image, polarity, grid.at(r, c + 0.5), grid)?);

@@ -35,7 +35,10 @@
 //!   The biweight's cut-off is `c = max(4.685·σ, B)`, `σ` = 1.4826 × the median absolute
 //!   residual (95 % efficiency on Gaussian noise), at least the fundamental's amplitude `B`, so
 //!   that only gross departures count as outliers on clean images. The first iteration is not
-//!   weighted; the second and third set the weights; the third's are then frozen, so the last
+//!   weighted; the first two set the weights from their residuals, and later ones too while
+//!   their steps stay large (a start spoiled by dust over the window, or an unweighted step
+//!   pulled by a blob darker than the dots: weights judged on a model far from its solution
+//!   count its own error as outliers). The next iteration freezes the weights, so the last
 //!   iterations solve one fixed weighted least-squares problem at Gauss–Newton's quadratic
 //!   rate (reweighting each time, as plain IRLS does, converges linearly).
 //!
@@ -43,7 +46,8 @@
 //! Both weights redescend to 0, so a gross outlier has no influence at all. Like every
 //! redescending M-estimator, the fit reaches the right solution when it starts in its basin:
 //! the start (the window's planes) must be within a fraction of a period everywhere in the
-//! field, which the coarse step guarantees, and is refused beyond a quarter period.
+//! field, which the coarse step guarantees; a fit that moves a plane by half a period anywhere
+//! (dots renumbered there) is refused.
 //!
 //! `X, Y` are image-frame coordinates relative to the field's weighted centre, divided by its
 //! half-size (conditioning, and `Σw·X = 0` decouples the harmonics' phases from their ramps).
@@ -82,13 +86,11 @@ const CELL_ZERO: f64 = 4.0;
 /// Half-width of the neighbourhood a cell's residual is compared with, nodes (a 7 × 7 block:
 /// a dust spot or a hair covers a minority of it).
 const CELL_NEIGHBOURHOOD: usize = 3;
-/// Iterations that update the robust weights; later ones keep them, so the fit converges to
-/// the solution of one fixed weighted problem.
+/// Fewest iterations that update the robust weights (more while the steps are large, see
+/// [`SETTLED_STEP`]); the next one freezes them and later ones keep them, so the fit converges
+/// to the solution of one fixed weighted problem.
 const ROBUST_ITERATIONS: usize = 2;
-/// Iteration bounds: at least this many (the first is not reweighted, the last
-/// `MIN_ITERATIONS − ROBUST_ITERATIONS` keep the final weights) …
-const MIN_ITERATIONS: usize = ROBUST_ITERATIONS + 1;
-/// … and at most this many.
+/// Most iterations.
 const MAX_ITERATIONS: usize = 10;
 /// Converged when no plane moves by more than this anywhere in the field, radians (1.6e-6 of
 /// a period; the iterations contract by ~5×, so the remaining error is a quarter of that).
@@ -101,9 +103,17 @@ const MIN_CONTRACTION: f64 = 0.5;
 /// … radians of phase at the field's edge (1.6e-4 of a period). Smaller steps may stall for an
 /// iteration or two (a weakly determined harmonic settling) and still converge.
 const GIVE_UP_STEP: f64 = 1e-3;
-/// The fit is refused when it moves a plane by more than this anywhere in the field, radians: the
-/// start was not in the basin (or the field is not this grid).
-const MAX_CORRECTION: f64 = PI / 2.0;
+/// The robust weights are updated (beyond the [`ROBUST_ITERATIONS`]) until a step moves no plane
+/// by more than this anywhere in the field, radians, and only then frozen: weights judged on
+/// the residuals of a model still far from its solution (a start spoiled by dust over the
+/// window, or an unweighted first step pulled by a blob darker than the dots) count its own
+/// error as outliers. The Tukey cut-off is at least the fundamental's amplitude, so a plane
+/// error below ~0.1 rad hardly moves a weight.
+const SETTLED_STEP: f64 = 0.05;
+/// The fit is refused when it moves a plane by half a period or more anywhere in the field,
+/// radians: dots would be renumbered there, so the start was not in the basin (or the field is
+/// not this grid).
+const MAX_CORRECTION: f64 = PI;
 /// Fewest regular nodes a field must have (a 4 × 4 block of dots).
 const MIN_NODES: usize = 16;
 /// The field is binned 2 × 2 while its period stays at least this many binned pixels (4×
@@ -294,7 +304,12 @@ impl FieldFit {
     ///   sees, and the window wins.
     pub fn beats_window(&self, window_phase_std: [f64; 2], x: f64, y: f64) -> bool {
         let norm = |s: [f64; 2]| s[0].hypot(s[1]);
-        self.spoiled_cells > 0 || norm(self.phase_std_at(x, y)) < norm(window_phase_std)
+        let (field, window) = (norm(self.phase_std_at(x, y)), norm(window_phase_std));
+        let beats = self.spoiled_cells > 0 || field < window;
+        if !beats {
+            log::debug!("whole-field fit σ {field:.2e} rad not below the window's {window:.2e}");
+        }
+        beats
     }
 
     /// Standard deviation of the mean gradient direction `(θ₁ + θ₂)/2` of the two planes,
@@ -932,15 +947,17 @@ fn fit_dot_field_generic(
     let (x0, y0, s) = field.frame;
     let mut total_shift = [0.0f64; 2];
     let mut previous_largest = f64::INFINITY;
+    // Weight updates so far, and the iteration that froze the weights.
+    let (mut reweights, mut frozen_at) = (0usize, None);
     for iteration in 1..=MAX_ITERATIONS {
-        let step = iterate(
-            image,
-            &field,
-            mask,
-            &model,
-            iteration == ROBUST_ITERATIONS + 1,
-        )?;
-        let mut largest = 0.0f64;
+        let freeze = frozen_at.is_none()
+            && reweights >= ROBUST_ITERATIONS
+            && previous_largest <= SETTLED_STEP;
+        let step = iterate(image, &field, mask, &model, freeze)?;
+        let largest = (0..6)
+            .step_by(3)
+            .map(|i| step.delta[i].abs() + step.delta[i + 1].abs() + step.delta[i + 2].abs())
+            .fold(0.0f64, f64::max);
         for (l, (p, shift)) in model.planes.iter_mut().zip(&mut total_shift).enumerate() {
             let d = [
                 step.delta[3 * l],
@@ -950,17 +967,22 @@ fn fit_dot_field_generic(
             p.a += d[0] / s;
             p.b += d[1] / s;
             p.c += d[2] - d[0] * x0 / s - d[1] * y0 / s;
-            let moved = d[0].abs() + d[1].abs() + d[2].abs();
-            largest = largest.max(moved);
-            *shift += moved;
+            *shift += d[0].abs() + d[1].abs() + d[2].abs();
         }
         // Refused beyond the limit, and when a step was not a number.
         if total_shift
             .iter()
             .any(|t| t.is_nan() || *t >= MAX_CORRECTION)
         {
+            log::debug!("whole-field fit refused: planes moved {total_shift:.2?} rad");
             return None;
         }
+        log::trace!(
+            "whole-field fit iteration {iteration}: step {largest:.1e} rad, residual σ {:.2e}, \
+             {:.1} % inliers",
+            step.residual_std,
+            100.0 * step.inlier_fraction
+        );
         model.linear = step.linear;
         // The harmonics' phases are free, not tied to the offsets (see `iterate`): they stay
         // where the image has them while the offsets move (at the field's centre, where the
@@ -969,20 +991,18 @@ fn fit_dot_field_generic(
         for (((h1, h2), a), d) in model.harmonics.iter_mut().zip(&step.harmonics) {
             *a = (*a + d) * Complex64::from_polar(1.0, -(*h1 as f64 * g1 + *h2 as f64 * g2));
         }
-        if !step.frozen.is_empty() {
+        if freeze {
             model.frozen = step.frozen;
-        }
-        if iteration <= ROBUST_ITERATIONS {
-            let floor = MIN_CUTOFF * model.contrast();
-            model.cutoff =
-                Some((TUKEY_BIWEIGHT * step.residual_std).max(floor)).filter(|c| *c > 0.0);
-            model.cells = cell_weights(&step.cells, mask.dims);
+            frozen_at = Some(iteration);
+        } else if frozen_at.is_none() {
+            set_robust_weights(&mut model, &step, mask);
+            reweights += 1;
         }
         // With the weights frozen, the iterations solve one fixed problem and contract fast;
         // one that does not (harmonics the weights couple too strongly for their separate
         // updates, a field the model does not describe) would use up every iteration and
         // still be refused, so it is given up at once.
-        if iteration > MIN_ITERATIONS + 1
+        if frozen_at.is_some_and(|f| iteration > f + 1)
             && largest > GIVE_UP_STEP
             && largest > MIN_CONTRACTION * previous_largest
         {
@@ -992,7 +1012,7 @@ fn fit_dot_field_generic(
             return None;
         }
         previous_largest = largest;
-        if iteration >= MIN_ITERATIONS && largest < CONVERGED {
+        if frozen_at.is_some() && largest < CONVERGED {
             return Some(FieldFit {
                 planes: model.planes,
                 amplitudes: [model.linear[3].abs(), model.linear[6].abs()],
@@ -1016,6 +1036,13 @@ fn fit_dot_field_generic(
     // (perspective, a deformed part) for one fixed answer; the caller keeps its planes.
     log::debug!("whole-field fit not converged in {MAX_ITERATIONS} iterations");
     None
+}
+
+/// Sets the biweight's cut-off and the cells' weights from the residuals of `step`'s sweep.
+fn set_robust_weights(model: &mut Model, step: &Step, mask: &NodeMask) {
+    let floor = MIN_CUTOFF * model.contrast();
+    model.cutoff = Some((TUKEY_BIWEIGHT * step.residual_std).max(floor)).filter(|c| *c > 0.0);
+    model.cells = cell_weights(&step.cells, mask.dims);
 }
 
 /// The starting model: background, fundamentals and every harmonic demodulated under the

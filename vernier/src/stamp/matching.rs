@@ -382,7 +382,7 @@ fn cell_vote(
     };
     let mut vote = 1.0f64;
     for rival in rivals {
-        let (mut net, mut compared) = (0.0f64, 0usize);
+        let (mut net, mut compared, mut evidence) = (0.0f64, 0usize, 0.0f64);
         for &(v, i) in &cells {
             let set = predicts_set(templates, winner, i);
             if set != predicts_set(templates, rival, i) {
@@ -392,9 +392,14 @@ fn cell_vote(
                 } else {
                     -1.0
                 };
-                net += sign * weight(i);
+                let w = weight(i);
+                net += sign * w;
+                evidence += w;
             }
         }
+        log::trace!(
+            "rival {rival:?}: net {net:.2} of {evidence:.2} weighted cells, {compared} compared"
+        );
         let v = if compared == 0 {
             0.0
         } else {
