@@ -22,8 +22,11 @@ use std::f64::consts::{FRAC_PI_2, PI, TAU};
 const MAX_AXIS_ERROR: f64 = 0.3;
 /// Largest relative difference between the grid period and twice the finders' module.
 const MAX_PERIOD_ERROR: f64 = 0.25;
-/// Largest distance of a finder leg from a whole number of periods, periods.
-const MAX_LEG_ERROR: f64 = 0.25;
+/// Largest distance of a finder leg from a whole number of periods, periods. Rounding is
+/// unambiguous below 0.5; the planes are those of the window at the marker's centre, so under
+/// perspective (a marker tilted by 25°, the scale changing by several per cent across it) the
+/// legs they measure are off by up to ~0.3 period.
+const MAX_LEG_ERROR: f64 = 0.35;
 
 /// Marker grid measured in a window, in image pixels.
 #[derive(Clone, Copy, Debug)]
