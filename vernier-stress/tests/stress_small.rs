@@ -9,7 +9,7 @@
 //! The stamp bitmaps come from `$VERNIER_DATA_DIR` (default `../shared/data` beside the
 //! workspace): without them the test fails, it does not skip.
 
-use vernier_stress::suite::{ACCURACY_CATEGORIES, ACCURACY_LIMIT_PX};
+use vernier_stress::suite::{Tally, ACCURACY_CATEGORIES, ACCURACY_LIMIT_PX};
 use vernier_stress::{run, select_seeds, Family, Generator, Report};
 
 /// First seed of the fixed set.
@@ -93,15 +93,14 @@ fn scenes_are_reproducible_from_their_seed() {
 /// judged against thresholds extrapolated from the inner dots' quadrants, a tried design).
 const REGRESSION_SEEDS: [u64; 9] = [119, 141, 427, 581, 691, 1505, 2143, 52831, 59189];
 
-#[test]
-fn dusty_corner_scenes_are_read_right() {
+/// Runs the HP code scenes of `seeds`, prints their table and checks that every marker is found
+/// with its ID and nothing false is reported; returns their tally.
+fn every_hp_marker_read_right(seeds: &[u64]) -> Tally {
     let generator = Generator::from_env().unwrap_or_else(|e| panic!("{e}"));
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut report = Report::default();
-    run(&generator, &REGRESSION_SEEDS, threads, &mut |o| {
-        report.add(&o)
-    })
-    .unwrap_or_else(|e| panic!("scene generation failed: {e}"));
+    run(&generator, seeds, threads, &mut |o| report.add(&o))
+        .unwrap_or_else(|e| panic!("scene generation failed: {e}"));
     let t = report.family_total(Family::HpCode);
     println!("{}", report.markdown(Family::HpCode));
     assert!(t.markers > 0);
@@ -111,6 +110,12 @@ fn dusty_corner_scenes_are_read_right() {
         "{}",
         report.failing_list(20)
     );
+    t
+}
+
+#[test]
+fn dusty_corner_scenes_are_read_right() {
+    every_hp_marker_read_right(&REGRESSION_SEEDS);
 }
 
 /// HP code scenes whose fine fit or ID once went wrong while the marker was "found": a dust
@@ -125,28 +130,8 @@ const GROSS_OUTLIER_MAX_ERROR_PX: f64 = 5e-3;
 
 #[test]
 fn gross_outliers_do_not_move_a_found_marker() {
-    let generator = Generator::from_env().unwrap_or_else(|e| panic!("{e}"));
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let mut report = Report::default();
-    let mut worst = 0.0f64;
-    run(&generator, &GROSS_OUTLIER_SEEDS, threads, &mut |o| {
-        worst = o
-            .result
-            .position_errors
-            .iter()
-            .fold(worst, |w, e| w.max(*e));
-        report.add(&o)
-    })
-    .unwrap_or_else(|e| panic!("scene generation failed: {e}"));
-    let t = report.family_total(Family::HpCode);
-    println!("{}", report.markdown(Family::HpCode));
-    assert!(t.markers > 0);
-    assert_eq!(
-        (t.found, t.wrong_id, t.false_markers),
-        (t.markers, 0, 0),
-        "{}",
-        report.failing_list(20)
-    );
+    let t = every_hp_marker_read_right(&GROSS_OUTLIER_SEEDS);
+    let worst = t.position_errors.iter().fold(0.0f64, |w, e| w.max(*e));
     assert!(
         worst < GROSS_OUTLIER_MAX_ERROR_PX,
         "worst position error {worst:.2e} px"
