@@ -86,12 +86,14 @@ fn scenes_are_reproducible_from_their_seed() {
     }
 }
 
-/// HP code scenes that once were missed or misread, each with dust or hair over a corner of a
+/// HP code scenes that once were missed or misread, most with dust or hair over a corner of a
 /// marker: over a finder (119, 141, 427, 581, 691, 1505, 2143; 581 once read a quarter turn)
 /// and over the dot corner with one finder hidden too (59189, once read as another ID), and a
 /// blob darker than the dots beside a finder (52831: read a half-turn while the corners were
-/// judged against thresholds extrapolated from the inner dots' quadrants, a tried design).
-const REGRESSION_SEEDS: [u64; 9] = [119, 141, 427, 581, 691, 1505, 2143, 52831, 59189];
+/// judged against thresholds extrapolated from the inner dots' quadrants, a tried design); and
+/// a marker tilted by 23° whose edge dots lie 0.3 period off the window's linear grid (52669:
+/// missed until the ID edges were sampled with their reference dots' local shift).
+const REGRESSION_SEEDS: [u64; 10] = [119, 141, 427, 581, 691, 1505, 2143, 52669, 52831, 59189];
 
 /// Runs the HP code scenes of `seeds`, prints their table and checks that every marker is found
 /// with its ID and nothing false is reported; returns their tally.

@@ -147,12 +147,13 @@ fn read_edge(
     let mut present = Vec::with_capacity(n);
     let mut background = Vec::with_capacity(2 * n);
     let mut levels = Vec::with_capacity(n);
-    for c in cols.clone() {
+    for (c, (dr, dc)) in cols.clone().zip(reference_shifts(n, &point, &sample)?) {
         let c = c as f64;
-        levels.push(sample(point(0.0, c))?);
-        present.push(sample(point(1.0, c))?);
-        background.push(sample(point(0.5, c - 0.5))?);
-        background.push(sample(point(0.5, c + 0.5))?);
+        let at = |r: f64, c: f64| point(r + dr, c + dc);
+        levels.push(sample(at(0.0, c))?);
+        present.push(sample(at(1.0, c))?);
+        background.push(sample(at(0.5, c - 0.5))?);
+        background.push(sample(at(0.5, c + 0.5))?);
     }
     let global_half =
         0.5 * (median_or_nan(&mut present.clone()) - median_or_nan(&mut background.clone()));
@@ -186,6 +187,49 @@ fn read_edge(
         completeness: sorted.first().copied().unwrap_or(f64::INFINITY),
         completeness_but_one: sorted.get(1).copied().unwrap_or(f64::INFINITY),
     })
+}
+
+/// Largest local shift searched for a reference dot, periods along each axis.
+const MAX_REFERENCE_SHIFT: f64 = 0.3;
+
+/// Local grid shifts `(rows, columns)`, in periods, of the edge's ID columns `4..=n − 5`: where
+/// the reference dots of row 1 (always present) are brightest within ±[`MAX_REFERENCE_SHIFT`],
+/// the median over each column and its two neighbours. The grid is the window's planes,
+/// linear, so under perspective the marker's edges lie up to ~0.3 period off it; the ID dot one
+/// period away is displaced alike, so it is sampled with its reference dot's shift (searching
+/// the ID positions themselves would climb a missing dot's neighbours).
+fn reference_shifts(
+    n: usize,
+    point: &dyn Fn(f64, f64) -> Vector2<f64>,
+    sample: &dyn Fn(Vector2<f64>) -> Option<f64>,
+) -> Option<Vec<(f64, f64)>> {
+    const STEPS: i32 = 2;
+    let step = MAX_REFERENCE_SHIFT / STEPS as f64;
+    let mut best = Vec::with_capacity(n);
+    for c in 4..=n - 5 {
+        let mut top: (f64, (f64, f64)) = (f64::NEG_INFINITY, (0.0, 0.0));
+        for i in -STEPS..=STEPS {
+            for j in -STEPS..=STEPS {
+                let (dr, dc) = (i as f64 * step, j as f64 * step);
+                let v = sample(point(1.0 + dr, c as f64 + dc))?;
+                // Ties (a flat-topped dot) keep the smaller shift.
+                let closer = dr.abs() + dc.abs() < top.1 .0.abs() + top.1 .1.abs();
+                if v > top.0 || (v == top.0 && closer) {
+                    top = (v, (dr, dc));
+                }
+            }
+        }
+        best.push(top.1);
+    }
+    let median3 = |k: usize, f: fn(&(f64, f64)) -> f64| {
+        let near = k.saturating_sub(1)..(k + 2).min(best.len());
+        median_or_nan(&mut best[near].iter().map(f).collect::<Vec<_>>())
+    };
+    Some(
+        (0..best.len())
+            .map(|k| (median3(k, |s| s.0), median3(k, |s| s.1)))
+            .collect(),
+    )
 }
 
 /// Fraction of the marker's grid that looks as it should, `[0, 1]`: every dot outside the
