@@ -947,17 +947,14 @@ fn fit_dot_field_generic(
     let (x0, y0, s) = field.frame;
     let mut total_shift = [0.0f64; 2];
     let mut previous_largest = f64::INFINITY;
-    // Weight updates so far, and the iteration that froze the weights.
-    let (mut reweights, mut frozen_at) = (0usize, None);
+    // The iteration that froze the weights; every iteration before it updated them.
+    let mut frozen_at = None;
     for iteration in 1..=MAX_ITERATIONS {
         let freeze = frozen_at.is_none()
-            && reweights >= ROBUST_ITERATIONS
+            && iteration > ROBUST_ITERATIONS
             && previous_largest <= SETTLED_STEP;
         let step = iterate(image, &field, mask, &model, freeze)?;
-        let largest = (0..6)
-            .step_by(3)
-            .map(|i| step.delta[i].abs() + step.delta[i + 1].abs() + step.delta[i + 2].abs())
-            .fold(0.0f64, f64::max);
+        let mut largest = 0.0f64;
         for (l, (p, shift)) in model.planes.iter_mut().zip(&mut total_shift).enumerate() {
             let d = [
                 step.delta[3 * l],
@@ -967,7 +964,9 @@ fn fit_dot_field_generic(
             p.a += d[0] / s;
             p.b += d[1] / s;
             p.c += d[2] - d[0] * x0 / s - d[1] * y0 / s;
-            *shift += d[0].abs() + d[1].abs() + d[2].abs();
+            let moved = d[0].abs() + d[1].abs() + d[2].abs();
+            largest = largest.max(moved);
+            *shift += moved;
         }
         // Refused beyond the limit, and when a step was not a number.
         if total_shift
@@ -996,7 +995,6 @@ fn fit_dot_field_generic(
             frozen_at = Some(iteration);
         } else if frozen_at.is_none() {
             set_robust_weights(&mut model, &step, mask);
-            reweights += 1;
         }
         // With the weights frozen, the iterations solve one fixed problem and contract fast;
         // one that does not (harmonics the weights couple too strongly for their separate
