@@ -49,10 +49,15 @@ pub struct DetectorFlags {
     /// JSON as `pose_3d_cue_strength`.
     #[arg(long = "pose-3d")]
     pub pose_3d: bool,
-    /// HP codes: keep the analysis window's planes instead of refining each decoded marker on
-    /// its whole regular dot field (docs/design.md#field-fit): faster, less precise.
-    #[arg(long = "no-field-fit")]
+    /// HP codes and stamps: keep the analysis window's planes instead of refining each marker
+    /// on its whole dot field (docs/design.md#field-fit): faster, less precise.
+    #[arg(long = "no-field-fit", conflicts_with = "field_fit")]
     pub no_field_fit: bool,
+    /// Periodic grids: refine the engine's planes on every pixel of the image
+    /// (docs/design.md#field-fit): 2.5× less position noise, 4× less orientation noise, ~100×
+    /// the cost (155 ms against 1.5 ms on a 512² image). HP codes and stamps do it by default.
+    #[arg(long = "field-fit")]
+    pub field_fit: bool,
     /// Treat the images as one sequence, in order, and track the markers from frame to frame
     /// (HP codes: the finder search runs on the first frame, on loss and every
     /// `--reacquire-every` frames; same poses as without it while markers move less than half
@@ -103,7 +108,11 @@ impl DetectorFlags {
             polarity: self.polarity.0,
             bitmaps: self.bitmap.clone(),
             pose_3d: self.pose_3d,
-            field_fit: Some(!self.no_field_fit),
+            field_fit: match (self.field_fit, self.no_field_fit) {
+                (true, _) => Some(true),
+                (_, true) => Some(false),
+                _ => None,
+            },
             pixel_size: self.pixel_size,
         }
     }

@@ -402,10 +402,11 @@ pub fn specs() -> Vec<ParamSpec> {
         spec(
             "field_fit",
             V::Boolean(true),
-            "HP codes and stamps: after decoding, refine each marker on its whole regular dot \
-             field with robust weights (dust, hair and scratches ignored; \
-             docs/design.md#field-fit). false keeps the analysis window's planes: faster, less \
-             precise.",
+            "HP codes and stamps: after decoding, refine each marker on its whole dot field with \
+             robust weights (dust, hair and scratches ignored; docs/design.md#field-fit). false \
+             keeps the analysis window's planes: faster, less precise. Periodic grids keep the \
+             engine's planes either way (their whole-image fit, `vernier detect --field-fit`, \
+             costs ~100x the engine).",
         ),
         ParamSpec {
             unit: "m/px",
@@ -770,7 +771,9 @@ impl NodeParams {
             polarity,
             bitmaps: bitmaps.iter().map(PathBuf::from).collect(),
             pose_3d: flag("pose_3d")?,
-            field_fit: Some(flag("field_fit")?),
+            // true: each type's default (periodic grids keep the engine's planes: their
+            // whole-image fit costs ~100× the engine); false: window planes for every type.
+            field_fit: (!flag("field_fit")?).then_some(false),
             pixel_size,
         };
         let params = NodeParams {

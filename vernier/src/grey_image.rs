@@ -342,6 +342,16 @@ impl GreyImage {
         (self.width / 2, self.height / 2)
     }
 
+    /// The four corner pixels in the image frame (pixels from [`GreyImage::center`], y down):
+    /// top-left, top-right, bottom-left, bottom-right.
+    pub(crate) fn corners_from_center(&self) -> [(f64, f64); 4] {
+        let (cx, cy) = self.center();
+        let (left, top) = (-(cx as f64), -(cy as f64));
+        let right = self.width.saturating_sub(1 + cx) as f64;
+        let bottom = self.height.saturating_sub(1 + cy) as f64;
+        [(left, top), (right, top), (left, bottom), (right, bottom)]
+    }
+
     /// `1 − value` for every pixel (turns dark dots into bright dots).
     pub fn inverted(&self) -> GreyImage {
         GreyImage {

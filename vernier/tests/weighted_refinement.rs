@@ -72,13 +72,7 @@ fn masking_missing_dots_removes_their_bias() {
             .unwrap();
         // Position error of the grid node nearest the image centre, pixels.
         let error = |planes: &[vernier::PhasePlane; 2]| {
-            let found = vernier::periodic::periodic_pose(
-                &vernier::PhaseAnalysis {
-                    planes: *planes,
-                    ..plain.clone()
-                },
-                period,
-            );
+            let found = vernier::periodic::periodic_pose(planes, period);
             let d = found.origin_in_image() - truth.origin_in_image();
             let (s, c) = truth.alpha.sin_cos();
             let pitch = period / pixel_size;

@@ -150,13 +150,11 @@ pub(crate) fn locate(
     })
 }
 
-/// The marker grid refined on its whole regular dot field (docs/design.md#field-fit), and the
-/// fit. `id` and `mirrored` are the decoded ones: they say which dots exist. The field is every
-/// regular dot of the layout's bitmap ([`BitmapLayout::is_regular_dot`]: no finder, missing ID
-/// dot or marker edge within one period). `None` when the field is too small or the fit fails
-/// (the caller keeps the window's grid).
-///
-/// [`BitmapLayout::is_regular_dot`]: crate::layout::BitmapLayout::is_regular_dot
+/// The marker grid refined on its whole dot field (docs/design.md#field-fit), and the fit.
+/// `id` and `mirrored` are the decoded ones: they say which dots exist and where the finders
+/// are, so that the fit weighs every drawn dot and keeps clear of the finders, the missing ID
+/// dots and the marker's edge. `None` when the field is too small or the fit fails (the
+/// caller keeps the window's grid).
 pub(crate) fn refine_on_field(
     image: &GreyImage,
     grid: &MarkerGrid,
@@ -171,11 +169,11 @@ pub(crate) fn refine_on_field(
         .ok()?
         .to_bitmap();
     let last = n as i64 - 1;
-    // Nodes (k₁, k₂) = (c, r), dot indices: plane 1 counts columns, plane 2 rows. A mirrored
-    // marker shows its layout transposed.
-    let mask = NodeMask::from_fn(0..=last, 0..=last, |c, r| {
-        let (r, c) = if mirrored { (c, r) } else { (r, c) };
-        bitmap.is_regular_dot(2 * r as usize, 2 * c as usize)
+    // Nodes (k₁, k₂) = (c, r), dot indices: plane 1 counts columns, plane 2 rows; cell
+    // (v₁, v₂) is bitmap cell (row v₂, col v₁). A mirrored marker shows its layout transposed.
+    let mask = NodeMask::from_cells(0..=last, 0..=last, |v1, v2| {
+        let (row, col) = if mirrored { (v1, v2) } else { (v2, v1) };
+        row >= 0 && col >= 0 && bitmap.cell(row as usize, col as usize)
     });
     let (cx, cy) = image.center();
     let origin = Vector2::new(cx as f64, cy as f64);

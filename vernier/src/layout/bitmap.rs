@@ -187,19 +187,6 @@ impl BitmapLayout {
             && col < self.n_cols
             && self.cells.get(row * self.n_cols + col) == Some(&true)
     }
-    /// Whether cell `(row, col)` is a dot of the *regular* grid: within one period of it (the
-    /// 5 × 5 cells centred on it, all inside the bitmap) the bitmap is exactly the periodic
-    /// dot grid — cells of the dot's parity set, all others clear. No frame, glyph, missing
-    /// dot or bitmap edge is that close. The dots a whole-field fit may treat as periodic
-    /// (docs/design.md#field-fit).
-    pub fn is_regular_dot(&self, row: usize, col: usize) -> bool {
-        if row < 2 || col < 2 || row + 2 >= self.n_rows || col + 2 >= self.n_cols {
-            return false;
-        }
-        (0..5).all(|dr| {
-            (0..5).all(|dc| self.cell(row + dr - 2, col + dc - 2) == (dr % 2 == 0 && dc % 2 == 0))
-        })
-    }
     /// Row-major cells (`cell_rows() · cell_cols()` values).
     pub fn cells(&self) -> &[bool] {
         &self.cells
@@ -419,24 +406,6 @@ impl Layout for FingerprintLayout {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn regular_dots_are_those_with_a_plain_periodic_neighbourhood() {
-        // 13 × 13 half-period cells: dots on even cells, a solid bar on row 6 from col 8.
-        let n = 13;
-        let cells = (0..n * n)
-            .map(|i| {
-                let (r, c) = (i / n, i % n);
-                (r % 2 == 0 && c % 2 == 0) || (r == 6 && c >= 8)
-            })
-            .collect();
-        let b = BitmapLayout::from_cells_unchecked(1.0, n, n, cells);
-        assert!(b.is_regular_dot(4, 4));
-        // Too close to the bitmap's edge, on a gap cell, or within one period of the bar.
-        assert!(!b.is_regular_dot(0, 4) && !b.is_regular_dot(2, 12));
-        assert!(!b.is_regular_dot(5, 5) && !b.is_regular_dot(4, 8) && !b.is_regular_dot(8, 10));
-        assert!(b.is_regular_dot(2, 8) && b.is_regular_dot(10, 4));
-    }
 
     fn checkerboard(n_rows: usize, n_cols: usize) -> Vec<Vec<u8>> {
         (0..n_rows)

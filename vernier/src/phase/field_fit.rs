@@ -2,26 +2,35 @@
 //!
 //! The phase engine measures a window that must hold nothing but dots, so on a decoded marker
 //! it sees a fraction of the dot field, under an apodising window. Once a coarse step knows the
-//! layout, every pixel of the regular dot field can be used instead:
+//! layout, every pixel around every drawn dot can be used instead:
 //!
-//! * **Which pixels.** The caller marks the *regular* lattice nodes: dots of the layout whose
-//!   3 × 3 neighbourhood is all plain dots, so that the image around them is exactly periodic
-//!   (no finder, frame, missing ID dot or marker edge within one period). Each pixel gets the
-//!   weight `w_L = Σ M(k)·b(u₁ − k₁)·b(u₂ − k₂)` over its four surrounding nodes, `u = φ/2π` its
-//!   lattice coordinates, `M(k) ∈ {0, 1}` the node mask, `b(t) = cos²(πt/2)` on `|t| < 1`: a
-//!   partition of unity, so `w_L = 1` inside the field and falls smoothly to 0 within one period
-//!   of its edge. The Fourier transform of `b` vanishes at every non-zero integer, so the dots'
-//!   harmonics stay exactly orthogonal to each other under any such sum of node kernels.
+//! * **Which pixels.** The caller gives the layout on the half-period cell grid
+//!   ([`NodeMask::from_cells`]). Each pixel gets the weight `w_L = s(d)·Σ M(k)·b(u₁ − k₁)·
+//!   b(u₂ − k₂)` over its four surrounding nodes, `u = φ/2π` its lattice coordinates,
+//!   `M(k) ∈ {0, 1}` whether node `k`'s dot is drawn, `b(t) = cos²(πt/2)` on `|t| < 1` (a
+//!   partition of unity: `Σ b = 1` wherever the dots go on, falling smoothly to 0 within one
+//!   period of the field's edge), and `s(d) = sin²(πd/2c)` of the pixel's distance `d` to the
+//!   nearest *discrepant* cell (where the layout differs from the periodic grid: a missing
+//!   dot, ink of a finder, frame or glyph, the marker's edge), 1 beyond the clearance `c`: one
+//!   period, longer on blurred images (six blur σ, σ measured from the (1, ±1) harmonics'
+//!   amplitude). The image there is the periodic pattern up to the blurred edge of those
+//!   features. The Fourier transform of `b` vanishes at every non-zero integer, so the dots'
+//!   harmonics are orthogonal under the node kernels; `s` breaks that near the discrepant
+//!   cells only, where the alternation below converges more slowly, to the same solution.
 //! * **Which model.** `g = μ + μ_X·X + μ_Y·Y + Σ_l (B_l + E_l·X + F_l·Y)·cos φ_l +
-//!   (1 + η_X·X + η_Y·Y)·Σ_h Re(A_h·e^{i h·φ})`: background, fundamental amplitudes and the
+//!   (1 + η_X·X + η_Y·Y)·Σ_h A_h·cos(h·φ)`: background, fundamental amplitudes and the
 //!   harmonics' gain with linear trends (illumination), and every dot harmonic `h` up to order
-//!   [`MAX_ORDER`] per axis whose amplitude reaches [`MIN_HARMONIC`] of the fundamental, with a
-//!   free complex amplitude (no assumption on the dot's shape). Modelling the harmonics removes
-//!   their leakage into the plane slopes without any window, and lets the slopes use their
-//!   information: every pixel of the field counts fully (a flat aperture instead of the
-//!   engine's sine-cubed one, κ = √12 instead of 4.85). The offsets `c_l` are those of the
-//!   fundamentals (phase 0 on the dot centres, as the engine's); the harmonics' own phases are
-//!   free, so they inform the slopes but not the offsets.
+//!   [`MAX_ORDER`] per axis whose amplitude reaches [`MIN_HARMONIC`] of the fundamental, each
+//!   with a free real amplitude. The harmonics are tied to the dot centres (phase 0 there, as
+//!   the fundamentals'): the dots are taken as point-symmetric, which sharp, blurred or
+//!   pixel-integrated dots of any round or square shape are, so every harmonic informs the
+//!   offsets as well as the slopes — square dots carry ~80 % more position information in
+//!   their harmonics than in the fundamentals. An asymmetric dot (coma, oblique light) moves
+//!   the centre this model reports, a constant offset for a given optics (0.05 px on the
+//!   `Image96`–`105` marker whose harmonics are the most skewed, docs/design.md#field-fit).
+//!   Modelling the harmonics removes their leakage into the planes without any window: every
+//!   pixel counts fully (a flat aperture instead of the engine's sine-cubed one, κ = √12
+//!   instead of 4.85).
 //! * **How.** Gauss–Newton: each iteration is one sweep that solves the 17 unknowns
 //!   `μ, μ_X, μ_Y, B_l, E_l, F_l, η_X, η_Y` and the plane corrections
 //!   `δφ_l = α_l·X + β_l·Y + γ_l` in one weighted linear least-squares step, and corrects the
@@ -32,9 +41,9 @@
 //!   residual exceeds twice the median of the cells around it (7 × 7 nodes) loses weight, none
 //!   is left beyond 4×: dust, hair and scratches spoil whole cells, while the dots' fine model
 //!   error is in every cell alike and smooth model error (vignetting) in neighbouring ones.
-//!   The biweight's cut-off is `c = max(4.685·σ, B)`, `σ` = 1.4826 × the median absolute
-//!   residual (95 % efficiency on Gaussian noise), at least the fundamental's amplitude `B`, so
-//!   that only gross departures count as outliers on clean images. The first iteration is not
+//!   The biweight's cut-off is `c = max(4.685·σ, 2B)`, `σ` = 1.4826 × the median absolute
+//!   residual (95 % efficiency on Gaussian noise), at least twice the fundamental's amplitude
+//!   `B` ([`MIN_CUTOFF`]), so that only gross departures count as outliers on clean images. The first iteration is not
 //!   weighted; the first two set the weights from their residuals, and later ones too while
 //!   their steps stay large (a start spoiled by dust over the window, or an unweighted step
 //!   pulled by a blob darker than the dots: weights judged on a model far from its solution
@@ -57,7 +66,9 @@
 //! steps stop contracting once the weights are frozen is given up at once rather than run to
 //! the iteration limit (it would be refused there).
 
+use super::noise::{white_noise_variance, NoisePlan};
 use super::plane::{wrap_to_pi, PhasePlane};
+use super::MIN_NOISE_STD;
 use crate::grey_image::GreyImage;
 use crate::order_stats::{median, robust_sigma, TUKEY_BIWEIGHT};
 use nalgebra::{Matrix6, SMatrix, SVector, Vector2, Vector6};
@@ -73,10 +84,14 @@ const MAX_ORDER: usize = 5;
 /// edge): blurred images keep a few, sharp ones a few dozen.
 const MIN_HARMONIC: f64 = 1e-3;
 /// Smallest Tukey cut-off, in mean fundamental amplitudes `B`: a pixel is a gross outlier
-/// only when it departs from the model by more than the fundamental's amplitude (a quarter to
-/// a third of the dot contrast). Smaller departures are model detail (dot edges that vary
-/// from dot to dot, illumination), which the cells' weights judge as a whole.
-const MIN_CUTOFF: f64 = 1.0;
+/// only when it departs from the model by more than twice the fundamental's amplitude (about
+/// half the dot contrast). Smaller departures are model detail (dot edges that vary from dot
+/// to dot, harmonics beyond the modelled orders, illumination), which the cells' weights
+/// judge as a whole. A pixel whose model error sits on the biweight's slope gets a weight
+/// that moves with each noise draw, and frozen weights then scatter the result beyond the
+/// white-noise prediction: at `c = B` sharp dots 40 px wide scattered 1.7× the predicted σ,
+/// at `2B` as predicted (tests/efficiency.rs).
+const MIN_CUTOFF: f64 = 2.0;
 /// A cell (one lattice period around a node) whose RMS residual exceeds this many times the
 /// median cell's starts losing weight (dust, hair, scratch over it) …
 const CELL_FULL: f64 = 2.0;
@@ -134,41 +149,139 @@ const MAX_HARMONICS: usize = ((2 * MAX_ORDER + 1) * (2 * MAX_ORDER + 1) - 1) / 2
 /// All unknowns: the linear ones and (α, β, γ) of each plane.
 const UNKNOWNS: usize = LINEAR + 6;
 
-/// The regular lattice nodes of a marker: node `(k₁, k₂)` is the image point where
-/// `φ₁ = 2πk₁` and `φ₂ = 2πk₂` (a dot centre), `φ_l` the planes given to [`fit_dot_field`].
+/// The layout of a marker's dot field, on the half-period cell grid of the planes given to
+/// [`fit_dot_field`]: cell `(v₁, v₂)` is centred where `φ_l = π·v_l`, so the lattice nodes
+/// (dot centres, `φ_l = 2πk_l`) are the cells `(2k₁, 2k₂)`. A cell is *discrepant* where the
+/// layout differs from the periodic dot grid: a missing dot, ink on an odd cell (finder, frame,
+/// glyph) or the marker's edge. The fit weighs the pixels around every drawn dot, less within
+/// one period (more on blurred images) of a discrepant cell and not at all on one.
 #[derive(Clone, Debug)]
 pub struct NodeMask {
     first: (i64, i64),
     dims: (usize, usize),
-    regular: Vec<bool>,
+    /// Per node: its dot is drawn.
+    present: Vec<bool>,
+    /// Cell `(v₁, v₂)` of entry `(0, 0)` of the cell maps.
+    first_cell: (i64, i64),
+    /// Extent of the cell maps.
+    cell_dims: (usize, usize),
+    /// Per cell: the layout differs from the periodic grid there.
+    discrepant: Vec<bool>,
+    /// Taper length from discrepant cells, cells.
+    clearance: f64,
+    /// Per cell: a discrepant cell is within `ceil(clearance)` cells of it (pixels of other
+    /// cells are at least `clearance` away from every discrepant one).
+    near_discrepant: Vec<bool>,
 }
 
+/// Shortest distance from a discrepant cell's square, in half-period cells, over which a
+/// pixel's weight rises from 0 to 1 (`sin²`): one period. A blurred image gets
+/// [`CLEARANCE_PER_BLUR`] cells per period of blur σ when that is longer
+/// ([`NodeMask::with_clearance_for_blur`]).
+const MIN_CLEARANCE: f64 = 2.0;
+/// Clearance per unit of blur σ (both in cells): the edge of a finder, a frame or a missing
+/// dot departs from the periodic model by ~`Φ(−d/σ)` of its contrast at distance `d`, so six
+/// σ of taper keep that departure, weighted, below 1e-4 (a stress scene at σ = P/4: 4e-4 px
+/// of bias with a one-period taper, 1e-5–2.4e-4 px with six σ).
+const CLEARANCE_PER_BLUR: f64 = 6.0;
+/// Longest clearance, cells (blur beyond σ = P/3 leaves the dots too faint to measure).
+const MAX_CLEARANCE: f64 = 4.0;
+/// Cells beyond the nodes that the cell maps cover: a weighted pixel is within one period (2
+/// cells) of a drawn dot and looks at cells up to [`MAX_CLEARANCE`] from its own.
+const CELL_MARGIN: i64 = 3 + MAX_CLEARANCE as i64;
+/// `|A₁₁|/|B|`, the (1, ±1) harmonics' amplitude over the fundamental's, of sharp round dots
+/// half a period wide (square ones: 0.64); blur σ (periods) lowers it by `e^{−2π²σ²}`.
+const SHARP_DIAGONAL_RATIO: f64 = 0.70;
+
 impl NodeMask {
-    /// The nodes `k₁ ∈ k1`, `k₂ ∈ k2` for which `regular(k₁, k₂)` holds; every other node is
-    /// irregular.
-    pub fn from_fn(
+    /// The nodes `k₁ ∈ k1`, `k₂ ∈ k2` of a layout whose half-period cell `(v₁, v₂)` holds ink
+    /// where `ink(v₁, v₂)` (also asked for cells up to a few beyond the nodes; `false` outside
+    /// the marker).
+    pub fn from_cells(
         k1: std::ops::RangeInclusive<i64>,
         k2: std::ops::RangeInclusive<i64>,
-        regular: impl Fn(i64, i64) -> bool,
+        ink: impl Fn(i64, i64) -> bool,
     ) -> Self {
         let count = |r: &std::ops::RangeInclusive<i64>| (r.end() - r.start() + 1).max(0) as usize;
         let dims = (count(&k1), count(&k2));
-        let mut cells = Vec::with_capacity(dims.0 * dims.1);
+        let mut present = Vec::with_capacity(dims.0 * dims.1);
         for a in k1.clone() {
             for b in k2.clone() {
-                cells.push(regular(a, b));
+                present.push(ink(2 * a, 2 * b));
             }
         }
-        NodeMask {
+        let first_cell = (2 * k1.start() - CELL_MARGIN, 2 * k2.start() - CELL_MARGIN);
+        let cell_dims = (
+            (2 * dims.0 as i64 - 1 + 2 * CELL_MARGIN).max(0) as usize,
+            (2 * dims.1 as i64 - 1 + 2 * CELL_MARGIN).max(0) as usize,
+        );
+        let cell = |i: usize, j: usize| (first_cell.0 + i as i64, first_cell.1 + j as i64);
+        let mut discrepant = Vec::with_capacity(cell_dims.0 * cell_dims.1);
+        for i in 0..cell_dims.0 {
+            for j in 0..cell_dims.1 {
+                let (v1, v2) = cell(i, j);
+                let periodic = v1.rem_euclid(2) == 0 && v2.rem_euclid(2) == 0;
+                discrepant.push(ink(v1, v2) != periodic);
+            }
+        }
+        let mut mask = NodeMask {
             first: (*k1.start(), *k2.start()),
             dims,
-            regular: cells,
-        }
+            present,
+            first_cell,
+            cell_dims,
+            discrepant,
+            clearance: MIN_CLEARANCE,
+            near_discrepant: Vec::new(),
+        };
+        mask.mark_near_discrepant();
+        mask
     }
 
-    /// Whether node `(k1, k2)` is regular.
+    /// The same mask with the taper lengthened for the blur measured on `model` (σ in
+    /// periods from the (1, ±1) harmonics, [`SHARP_DIAGONAL_RATIO`]); `None` when the
+    /// shortest one fits.
+    fn with_clearance_for_blur(&self, model: &Model) -> Option<NodeMask> {
+        let diagonal: Vec<f64> = model
+            .harmonics
+            .iter()
+            .filter(|((h1, h2), _)| *h1 == 1 && h2.abs() == 1)
+            .map(|(_, a)| a.norm())
+            .collect();
+        let contrast = model.contrast();
+        if contrast <= 0.0 {
+            return None;
+        }
+        // Harmonics too faint to be modelled: blur well beyond a quarter period.
+        let ratio = (diagonal.iter().sum::<f64>() / diagonal.len().max(1) as f64 / contrast)
+            .max(MIN_HARMONIC);
+        let sigma = ((SHARP_DIAGONAL_RATIO / ratio).ln().max(0.0) / (2.0 * PI * PI)).sqrt();
+        let clearance = (CLEARANCE_PER_BLUR * 2.0 * sigma).clamp(MIN_CLEARANCE, MAX_CLEARANCE);
+        (clearance > MIN_CLEARANCE).then(|| {
+            let mut wider = self.clone();
+            wider.clearance = clearance;
+            wider.mark_near_discrepant();
+            wider
+        })
+    }
+
+    /// Fills `near_discrepant` for the current clearance.
+    fn mark_near_discrepant(&mut self) {
+        let (n1, n2) = (self.cell_dims.0 as i64, self.cell_dims.1 as i64);
+        let reach = self.clearance.ceil() as i64;
+        let discrepant = &self.discrepant;
+        let at = |i: i64, j: i64| {
+            i >= 0 && j >= 0 && i < n1 && j < n2 && discrepant[(i * n2 + j) as usize]
+        };
+        self.near_discrepant = (0..n1)
+            .flat_map(|i| (0..n2).map(move |j| (i, j)))
+            .map(|(i, j)| (-reach..=reach).any(|di| (-reach..=reach).any(|dj| at(i + di, j + dj))))
+            .collect();
+    }
+
+    /// Whether the dot of node `(k1, k2)` is drawn.
     pub fn get(&self, k1: i64, k2: i64) -> bool {
-        self.index(k1, k2).is_some_and(|i| self.regular[i])
+        self.index(k1, k2).is_some_and(|i| self.present[i])
     }
 
     /// Index of node `(k1, k2)` in per-node arrays of [`NodeMask::len`] entries.
@@ -178,20 +291,58 @@ impl NodeMask {
             .then(|| i as usize * self.dims.1 + j as usize)
     }
 
-    /// Number of nodes (regular or not) the mask spans.
-    fn len(&self) -> usize {
-        self.regular.len()
+    /// Index of cell `(v1, v2)` in the cell maps.
+    fn cell_index(&self, v1: i64, v2: i64) -> Option<usize> {
+        let (i, j) = (v1 - self.first_cell.0, v2 - self.first_cell.1);
+        (i >= 0 && j >= 0 && (i as usize) < self.cell_dims.0 && (j as usize) < self.cell_dims.1)
+            .then(|| i as usize * self.cell_dims.1 + j as usize)
     }
 
-    /// Number of regular nodes.
+    /// Weight factor in `[0, 1]` of a pixel at cell coordinates `v = 2u`: `sin²(π·d/2c)` of its
+    /// distance `d` from the nearest discrepant cell's square, in cells, 1 from the clearance
+    /// `c` on (the Euclidean distance: the blur is isotropic).
+    #[inline(always)]
+    fn clearance(&self, v: [f64; 2]) -> f64 {
+        let (c1, c2) = (v[0].round() as i64, v[1].round() as i64);
+        match self.cell_index(c1, c2) {
+            None => return 0.0,
+            Some(i) if !self.near_discrepant[i] => return 1.0,
+            Some(_) => {}
+        }
+        let reach = self.clearance.ceil() as i64;
+        let mut nearest = f64::INFINITY;
+        for d1 in -reach..=reach {
+            for d2 in -reach..=reach {
+                let (w1, w2) = (c1 + d1, c2 + d2);
+                if self.cell_index(w1, w2).is_some_and(|i| self.discrepant[i]) {
+                    let gap1 = ((v[0] - w1 as f64).abs() - 0.5).max(0.0);
+                    let gap2 = ((v[1] - w2 as f64).abs() - 0.5).max(0.0);
+                    nearest = nearest.min(gap1.hypot(gap2));
+                }
+            }
+        }
+        if nearest >= self.clearance {
+            1.0
+        } else {
+            let s = (0.5 * PI * nearest / self.clearance).sin();
+            s * s
+        }
+    }
+
+    /// Number of nodes (drawn or not) the mask spans.
+    fn len(&self) -> usize {
+        self.present.len()
+    }
+
+    /// Number of drawn dots.
     pub fn count(&self) -> usize {
-        self.regular.iter().filter(|&&r| r).count()
+        self.present.iter().filter(|&&r| r).count()
     }
 }
 
 /// A mask's node weights for one sweep, padded by one node on every side so that a pixel's
 /// four surrounding nodes are looked up without bounds checks per node: per node, `[1, w]` if
-/// regular (`w` its robust weight) and `[0, 0]` otherwise.
+/// drawn (`w` its robust weight) and `[0, 0]` otherwise.
 struct NodeWeights {
     /// Node `(k₁, k₂)` of entry `(0, 0)`.
     first: (i64, i64),
@@ -208,7 +359,7 @@ impl NodeWeights {
         for i in 0..mask.dims.0 {
             for j in 0..mask.dims.1 {
                 let index = i * mask.dims.1 + j;
-                if mask.regular[index] {
+                if mask.present[index] {
                     let robust = nodes.get(index).copied().unwrap_or(1.0);
                     entries[(i + 1) * dims.1 + j + 1] = [1.0, robust];
                 }
@@ -256,13 +407,15 @@ pub struct FieldFit {
     pub planes: [PhasePlane; 2],
     /// Amplitude `|B_l|` of each fundamental at the field's centre, image intensity units.
     pub amplitudes: [f64; 2],
-    /// Robust standard deviation of the residual (1.4826 × median |r|), intensity units: the
-    /// noise level the uncertainty is computed from (white noise and model error).
+    /// Robust standard deviation of the residual (1.4826 × median |r|), intensity units: white
+    /// noise and model error. The uncertainty counts the white noise alone (measured apart
+    /// from the model when that is smaller, docs/design.md#uncertainty).
     pub residual_std: f64,
     /// Fraction of the field's layout weight that the robust weights kept, `[0, 1]`.
     pub inlier_fraction: f64,
-    /// Cells (one period around a regular node) whose robust weight is below 1: dust, hair,
-    /// scratches over the field. Noise alone never lowers a cell's weight ([`CELL_FULL`]).
+    /// Whole cells (one period around a drawn dot, clear of the layout's other features) whose
+    /// robust weight is below 1: dust, hair, scratches over the field. Noise alone never
+    /// lowers a cell's weight ([`CELL_FULL`]).
     pub spoiled_cells: usize,
     /// Pixels with a non-zero layout weight.
     pub pixels: usize,
@@ -270,8 +423,11 @@ pub struct FieldFit {
     pub iterations: usize,
     /// Dot harmonics modelled (besides the two fundamentals).
     pub harmonics: usize,
-    /// Covariance of the last correction `(α₁, β₁, γ₁, α₂, β₂, γ₂)`, radians².
+    /// Covariance of the last correction `(α₁, β₁, γ₁, α₂, β₂, γ₂)` from white noise,
+    /// radians².
     covariance: Matrix6<f64>,
+    /// The residual's scale over the white noise's, ≥ 1: how far model error adds to the noise.
+    model_error_ratio: f64,
     /// Field centre `(x₀, y₀)` (image frame) and half-size `s` of the normalised coordinates.
     frame: (f64, f64, f64),
 }
@@ -297,14 +453,15 @@ impl FieldFit {
     ///
     /// * when the field has spoiled cells, always: the window weighs every pixel alike, so the
     ///   same dust or hair may bias it while its σ, a noise figure, cannot show it;
-    /// * otherwise the estimator with the smaller predicted position σ is kept (both
-    ///   predictions are checked against the real scatter in tests/efficiency.rs). The field
-    ///   model stops at order-[`MAX_ORDER`] harmonics: on nearly noise-free images of sharp dots
-    ///   many pixels wide its residual is model error, which the window's band-pass never
+    /// * otherwise the estimator with the smaller predicted position error is kept: the
+    ///   window's σ, and the field's σ scaled by its residual over the white noise. The field
+    ///   model stops at order-[`MAX_ORDER`] harmonics: on nearly noise-free images of sharp
+    ///   dots many pixels wide its residual is model error, which the window's band-pass never
     ///   sees, and the window wins.
     pub fn beats_window(&self, window_phase_std: [f64; 2], x: f64, y: f64) -> bool {
         let norm = |s: [f64; 2]| s[0].hypot(s[1]);
-        let (field, window) = (norm(self.phase_std_at(x, y)), norm(window_phase_std));
+        let field = norm(self.phase_std_at(x, y)) * self.model_error_ratio;
+        let window = norm(window_phase_std);
         let beats = self.spoiled_cells > 0 || field < window;
         if !beats {
             log::debug!("whole-field fit σ {field:.2e} rad not below the window's {window:.2e}");
@@ -819,6 +976,12 @@ impl Iterator for FieldPixels<'_> {
             self.half = [half[0] * self.half_step[0], half[1] * self.half_step[1]];
             let u = [self.planes[0].at(x, y) / TAU, self.planes[1].at(x, y) / TAU];
             let (layout, w) = self.weights.weight(u, [half[0].re, half[1].re]);
+            let clear = if layout > 0.0 {
+                self.mask.clearance([2.0 * u[0], 2.0 * u[1]])
+            } else {
+                0.0
+            };
+            let (layout, w) = (layout * clear, w * clear);
             let g = self
                 .pixels
                 .get(row * self.width + col)
@@ -843,10 +1006,12 @@ impl Iterator for FieldPixels<'_> {
     }
 }
 
-/// Refines `start` (image frame, docs/design.md#frames) on every pixel of the regular dot
-/// field described by `mask`, robustly (see the module doc). `None` when the field has fewer
-/// than 16 regular nodes, the normal equations are singular, the iterations do not converge, or the planes would move by more than a quarter
-/// period somewhere in the field (the start was not this grid's).
+/// Refines `start` (image frame, docs/design.md#frames) on every pixel around the drawn dots
+/// of `mask`, robustly (see the module doc). The covariance counts the white noise alone:
+/// the smaller of the residual's scale and the noise measured apart from the model (lattice
+/// second differences, [`super::noise`]). `None` when the field has fewer than 16 drawn dots,
+/// the normal equations are singular, the iterations do not converge, or the planes would
+/// move by half a period somewhere in the field (the start was not this grid's).
 pub fn fit_dot_field(
     image: &GreyImage,
     start: [PhasePlane; 2],
@@ -893,7 +1058,13 @@ pub fn fit_dot_field(
         b: f * p.b,
         c: p.c + p.a * offset[0] + p.b * offset[1],
     };
-    let mut fit = fit_dot_field_dispatch(&sub, start.map(|p| to_sub(&p)), mask)?;
+    let start_sub = start.map(|p| to_sub(&p));
+    // White noise measured apart from the model (lattice second differences): where the
+    // model stops short of the dots' detail (sharp dots many pixels wide), the residual is
+    // static model error, which does not scatter the result from frame to frame.
+    let mut plan = NoisePlan::new(sub.height(), sub.width());
+    let white = white_noise_variance(sub.pixels(), None, &start_sub, &mut plan);
+    let mut fit = fit_dot_field_dispatch(&sub, start_sub, mask, white)?;
     fit.planes = fit.planes.map(|p| {
         let (a, b) = (p.a / f, p.b / f);
         PhasePlane {
@@ -913,16 +1084,17 @@ fn fit_dot_field_dispatch(
     image: &GreyImage,
     start: [PhasePlane; 2],
     mask: &NodeMask,
+    white: Option<f64>,
 ) -> Option<FieldFit> {
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
         {
             // SAFETY: the CPU supports the features the function is compiled for.
-            return unsafe { fit_dot_field_avx2(image, start, mask) };
+            return unsafe { fit_dot_field_avx2(image, start, mask, white) };
         }
     }
-    fit_dot_field_generic(image, start, mask)
+    fit_dot_field_generic(image, start, mask, white)
 }
 
 /// [`fit_dot_field`] compiled for AVX2 and FMA (the same arithmetic on wider vectors).
@@ -932,8 +1104,9 @@ unsafe fn fit_dot_field_avx2(
     image: &GreyImage,
     start: [PhasePlane; 2],
     mask: &NodeMask,
+    white: Option<f64>,
 ) -> Option<FieldFit> {
-    fit_dot_field_generic(image, start, mask)
+    fit_dot_field_generic(image, start, mask, white)
 }
 
 #[inline(always)]
@@ -941,9 +1114,12 @@ fn fit_dot_field_generic(
     image: &GreyImage,
     start: [PhasePlane; 2],
     mask: &NodeMask,
+    white: Option<f64>,
 ) -> Option<FieldFit> {
     let mut field = FieldBox::new(image, &start, mask)?;
     let mut model = first_model(image, &mut field, mask, start)?;
+    let wider = mask.with_clearance_for_blur(&model);
+    let mask = wider.as_ref().unwrap_or(mask);
     let (x0, y0, s) = field.frame;
     let mut total_shift = [0.0f64; 2];
     let mut previous_largest = f64::INFINITY;
@@ -953,7 +1129,7 @@ fn fit_dot_field_generic(
         let freeze = frozen_at.is_none()
             && iteration > ROBUST_ITERATIONS
             && previous_largest <= SETTLED_STEP;
-        let step = iterate(image, &field, mask, &model, freeze)?;
+        let step = iterate(image, &field, mask, &model, freeze, white)?;
         let mut largest = 0.0f64;
         for (l, (p, shift)) in model.planes.iter_mut().zip(&mut total_shift).enumerate() {
             let d = [
@@ -983,12 +1159,11 @@ fn fit_dot_field_generic(
             100.0 * step.inlier_fraction
         );
         model.linear = step.linear;
-        // The harmonics' phases are free, not tied to the offsets (see `iterate`): they stay
-        // where the image has them while the offsets move (at the field's centre, where the
-        // slopes move nothing).
-        let (g1, g2) = (step.delta[2], step.delta[5]);
-        for (((h1, h2), a), d) in model.harmonics.iter_mut().zip(&step.harmonics) {
-            *a = (*a + d) * Complex64::from_polar(1.0, -(*h1 as f64 * g1 + *h2 as f64 * g2));
+        // The harmonics are tied to the dot centres (real amplitudes, see the module doc):
+        // they move with the planes, and the imaginary part of their correction is the offset
+        // error that this step's γ has already taken.
+        for ((_, a), d) in model.harmonics.iter_mut().zip(&step.harmonics) {
+            *a = Complex64::new((*a + d).re, 0.0);
         }
         if freeze {
             model.frozen = step.frozen;
@@ -1016,16 +1191,12 @@ fn fit_dot_field_generic(
                 amplitudes: [model.linear[3].abs(), model.linear[6].abs()],
                 residual_std: step.residual_std,
                 inlier_fraction: step.inlier_fraction,
-                spoiled_cells: model
-                    .cells
-                    .iter()
-                    .zip(&mask.regular)
-                    .filter(|(w, regular)| **regular && **w < 1.0)
-                    .count(),
+                spoiled_cells: spoiled_cells(&model.cells, &step.cells),
                 pixels: step.pixels,
                 iterations: iteration,
                 harmonics: model.harmonics.len(),
                 covariance: step.covariance,
+                model_error_ratio: step.model_error_ratio,
                 frame: field.frame,
             });
         }
@@ -1034,6 +1205,24 @@ fn fit_dot_field_generic(
     // (perspective, a deformed part) for one fixed answer; the caller keeps its planes.
     log::debug!("whole-field fit not converged in {MAX_ITERATIONS} iterations");
     None
+}
+
+/// Number of whole cells (at least half the largest cell's layout weight: clear of the
+/// layout's other features) whose robust weight is below 1. `sums`: `(Σ w_L·r², Σ w_L)` per
+/// node.
+fn spoiled_cells(weights: &[f64], sums: &[[f64; 2]]) -> usize {
+    let whole = whole_cells(sums);
+    (0..weights.len())
+        .filter(|&i| weights[i] < 1.0 && whole(i))
+        .count()
+}
+
+/// Whether cell `i` is whole: at least half the largest cell's layout weight (`sums`:
+/// `(Σ w_L·r², Σ w_L)` per node), i.e. clear of the layout's other features and of the field's
+/// edge.
+fn whole_cells(sums: &[[f64; 2]]) -> impl Fn(usize) -> bool + '_ {
+    let largest = sums.iter().map(|s| s[1]).fold(0.0, f64::max);
+    move |i| sums.get(i).is_some_and(|s| s[1] >= 0.5 * largest)
 }
 
 /// Sets the biweight's cut-off and the cells' weights from the residuals of `step`'s sweep.
@@ -1112,6 +1301,8 @@ struct Step {
     /// Correction of each modelled harmonic's amplitude.
     harmonics: Vec<Complex64>,
     covariance: Matrix6<f64>,
+    /// Residual scale over white-noise σ, ≥ 1.
+    model_error_ratio: f64,
     /// Robust standard deviation of the residuals before the step.
     residual_std: f64,
     inlier_fraction: f64,
@@ -1134,6 +1325,7 @@ fn iterate(
     mask: &NodeMask,
     model: &Model,
     freeze: bool,
+    white: Option<f64>,
 ) -> Option<Step> {
     let mut frozen = if freeze {
         vec![0.0f32; field.rows.len() * field.cols.len()]
@@ -1188,17 +1380,15 @@ fn iterate(
             basis[3 + 3 * l] = c;
             basis[4 + 3 * l] = p.xn * c;
             basis[5 + 3 * l] = p.yn * c;
-            // ∂g/∂φ_l at the current amplitudes. The offsets γ_l take the fundamentals' part
-            // only: each harmonic has a free phase, so it says nothing about the offsets
-            // (letting it pull them would only slow the alternation with the demodulation
-            // down). Its phase *ramp* does inform the slopes; X and Y are centred on the
-            // field's weight, so ramp and phase decouple.
+            // ∂g/∂φ_l at the current amplitudes, fundamental and harmonics: the harmonics are
+            // tied to the dot centres, so they inform the offsets γ_l as well as the slopes
+            // (X and Y are centred on the field's weight, so ramp and offset decouple).
             let amplitude = m[3 + 3 * l] + m[4 + 3 * l] * p.xn + m[5 + 3 * l] * p.yn;
             let fundamental = -amplitude * sn;
             let d = fundamental + gain * h_slope[l];
             basis[LINEAR + 3 * l] = d * p.xn;
             basis[LINEAR + 3 * l + 1] = d * p.yn;
-            basis[LINEAR + 3 * l + 2] = fundamental;
+            basis[LINEAR + 3 * l + 2] = d;
         }
         basis[9] = p.xn * h;
         basis[10] = p.yn * h;
@@ -1218,14 +1408,20 @@ fn iterate(
     let x = inverse * rhs;
     let residual_std = robust_sigma(&mut residuals);
     // Weighted least squares under white noise σ²: Cov = σ²·N⁻¹(Σw²bbᵀ)N⁻¹ ≈ σ²·N⁻¹·Σw²/Σw.
-    // σ²: the smaller of the kept pixels' weighted mean square residual and the robust
-    // (median) scale, both upper bounds of the white noise; the median ignores the static
-    // model error that sits on few pixels (dot edges, aliased harmonics), which does not
-    // scatter the result from frame to frame.
-    let noise_variance = (sum_wr2 / sum_w).min(residual_std * residual_std);
+    // The residual's scale: the smaller of the kept pixels' weighted mean square residual and
+    // the robust (median) one. It holds the white noise and the static model error (dot
+    // edges, aliased harmonics, sharp dots' detail beyond the modelled orders), which does not
+    // scatter the result from frame to frame but may bias it. σ² is the white noise alone: the
+    // model-free estimate `white` when smaller, at least the engine's floor.
+    let residual_variance = (sum_wr2 / sum_w).min(residual_std * residual_std);
+    let noise_variance = residual_variance
+        .min(white.unwrap_or(f64::INFINITY))
+        .max(MIN_NOISE_STD * MIN_NOISE_STD);
     let covariance =
         inverse.fixed_view::<6, 6>(LINEAR, LINEAR).into_owned() * (noise_variance * sum_w2 / sum_w);
+    let model_error_ratio = (residual_variance / noise_variance).max(1.0).sqrt();
     Some(Step {
+        model_error_ratio,
         linear: x.fixed_rows::<LINEAR>(0).into_owned(),
         delta: x.fixed_rows::<6>(LINEAR).into_owned(),
         harmonics: bank.sums().into_iter().map(|d| 2.0 * d / sum_w).collect(),
@@ -1250,8 +1446,7 @@ fn cell_weights(sums: &[[f64; 2]], dims: (usize, usize)) -> Vec<f64> {
         .iter()
         .map(|&[r2, w]| if w > 0.0 { (r2 / w).sqrt() } else { 0.0 })
         .collect();
-    let largest = sums.iter().map(|s| s[1]).fold(0.0, f64::max);
-    let full = |i: usize| sums.get(i).is_some_and(|s| s[1] >= 0.5 * largest);
+    let full = whole_cells(sums);
     let mut all: Vec<f64> = (0..rms.len())
         .filter(|&i| full(i))
         .map(|i| rms[i])
@@ -1313,6 +1508,18 @@ mod tests {
         GreyImage::new(n, n, px).unwrap()
     }
 
+    /// A square field of dots at nodes `−r..=r` per axis, without the `missing` ones.
+    fn dots(r: i64, missing: &[(i64, i64)]) -> NodeMask {
+        NodeMask::from_cells(-r..=r, -r..=r, |v1, v2| {
+            let node = (v1.div_euclid(2), v2.div_euclid(2));
+            v1 % 2 == 0
+                && v2 % 2 == 0
+                && node.0.abs() <= r
+                && node.1.abs() <= r
+                && !missing.contains(&node)
+        })
+    }
+
     fn planes(angle: f64, period: f64, offset: [f64; 2]) -> [PhasePlane; 2] {
         let k = TAU / period;
         let (s, c) = angle.sin_cos();
@@ -1340,7 +1547,7 @@ mod tests {
     fn recovers_the_planes_of_a_harmonic_rich_grid_from_a_rough_start() {
         let truth = planes(0.3, 9.3, [0.4, -1.1]);
         let image = grid(160, &truth, sharp);
-        let mask = NodeMask::from_fn(-6..=6, -6..=6, |_, _| true);
+        let mask = dots(6, &[]);
         let mut start = truth;
         start[0].c += 0.05;
         start[1].a *= 1.002;
@@ -1366,7 +1573,7 @@ mod tests {
                 image.pixels_mut()[r * w + c] = 0.05;
             }
         }
-        let mask = NodeMask::from_fn(-5..=5, -5..=5, |a, b| !(a == 0 && b == 0));
+        let mask = dots(5, &[(0, 0)]);
         let fit = fit_dot_field(&image, truth, &mask).unwrap();
         for (f, t) in fit.planes.iter().zip(&truth) {
             assert!((f.c - t.c).abs() < 1e-5, "{f:?} {t:?}");
@@ -1382,14 +1589,30 @@ mod tests {
     fn refuses_a_start_that_is_not_the_grid() {
         let truth = planes(0.1, 10.0, [0.0, 0.0]);
         let image = grid(128, &truth, sharp);
-        let mask = NodeMask::from_fn(-4..=4, -4..=4, |_, _| true);
+        let mask = dots(4, &[]);
         let wrong = planes(0.1, 13.0, [0.0, 0.0]);
         assert!(fit_dot_field(&image, wrong, &mask).is_none());
     }
 
     #[test]
+    fn clearance_keeps_off_missing_dots_and_the_edge() {
+        // Dots at nodes −3..=3 without (0, 0): cell (0, 0) is discrepant, and so is every dot
+        // cell beyond the edge (node ±4, cell ±8).
+        let mask = dots(3, &[(0, 0)]);
+        let at = |v1: f64, v2: f64| mask.clearance([v1, v2]);
+        let taper = |d: f64| (0.5 * PI * d / MIN_CLEARANCE).sin().powi(2);
+        assert_eq!(at(0.2, -0.4), 0.0);
+        assert!((at(1.0, 0.0) - taper(0.5)).abs() < 1e-12);
+        assert!((at(1.5, 1.5) - taper(2.0f64.sqrt())).abs() < 1e-12);
+        assert_eq!(at(2.5, 0.0), 1.0);
+        assert_eq!(at(4.0, 4.0), 1.0);
+        assert!((at(6.0, 2.0) - taper(1.5)).abs() < 1e-12);
+        assert_eq!(at(7.6, 2.0), 0.0);
+    }
+
+    #[test]
     fn layout_weight_is_a_partition_of_unity() {
-        let mask = NodeMask::from_fn(-3..=3, -3..=3, |_, _| true);
+        let mask = dots(3, &[]);
         let plain = NodeWeights::new(&mask, &[]);
         let weight = |u: [f64; 2]| plain.weight(u, u.map(|v| (PI * v).cos())).0;
         for &(u1, u2) in &[(0.0, 0.0), (0.3, -1.7), (2.49, 1.01), (-2.2, 2.9)] {

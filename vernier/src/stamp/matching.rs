@@ -95,15 +95,8 @@ impl Template {
         }
     }
 
-    /// Whether the cell at offset `j` from the central cell is a regular dot
-    /// ([`BitmapLayout::is_regular_dot`]).
-    pub(crate) fn is_regular_dot(&self, j: [i64; 2]) -> bool {
-        let (c, r) = (j[0] + self.half[0], j[1] + self.half[1]);
-        c >= 0 && r >= 0 && self.bitmap.is_regular_dot(r as usize, c as usize)
-    }
-
     /// Whether the cell at offset `j` from the central cell is set (false outside).
-    fn is_set(&self, j: [i64; 2]) -> bool {
+    pub(crate) fn is_set(&self, j: [i64; 2]) -> bool {
         let (c, r) = (j[0] + self.half[0], j[1] + self.half[1]);
         c >= 0 && r >= 0 && self.bitmap.cell(r as usize, c as usize)
     }

@@ -793,8 +793,8 @@ impl StampDetector {
             }))
     }
 
-    /// The planes (frame of `origin`, as given) refined on the matched bitmap's whole regular
-    /// dot field (docs/design.md#field-fit), with the fit; `None` when
+    /// The planes (frame of `origin`, as given) refined on the matched bitmap's whole dot
+    /// field (docs/design.md#field-fit), with the fit; `None` when
     /// [`StampParams::field_fit`] is off or the fit fails (the window's planes stand).
     fn refine_on_field(
         &self,
@@ -819,12 +819,12 @@ impl StampDetector {
         let o = found.origin_cell;
         let reach = template.half[0].max(template.half[1]) / 2 + 1;
         let (c1, c2) = (o[0].div_euclid(2), o[1].div_euclid(2));
-        let mask = NodeMask::from_fn(
+        let mask = NodeMask::from_cells(
             c1 - reach..=c1 + reach,
             c2 - reach..=c2 + reach,
-            |k1, k2| {
-                let d = [2 * k1 - o[0], 2 * k2 - o[1]];
-                template.is_regular_dot([
+            |v1, v2| {
+                let d = [v1 - o[0], v2 - o[1]];
+                template.is_set([
                     r[0][0] * d[0] + r[0][1] * d[1],
                     r[1][0] * d[0] + r[1][1] * d[1],
                 ])
@@ -864,15 +864,7 @@ impl StampDetector {
         let (cx, cy) = image.center();
         let origin = Vector2::new(cx as f64, cy as f64);
         // Cell ranges covered by the image: phases at its corners.
-        let corners = [
-            (-(cx as f64), -(cy as f64)),
-            ((image.width() - 1 - cx) as f64, -(cy as f64)),
-            (-(cx as f64), (image.height() - 1 - cy) as f64),
-            (
-                (image.width() - 1 - cx) as f64,
-                (image.height() - 1 - cy) as f64,
-            ),
-        ];
+        let corners = image.corners_from_center();
         let mut lo = [i64::MAX; 2];
         let mut hi = [i64::MIN; 2];
         for (x, y) in corners {
