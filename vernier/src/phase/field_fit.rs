@@ -847,6 +847,11 @@ struct FieldBox {
     center: (f64, f64),
     /// Normalisation `(x₀, y₀, s)`.
     frame: (f64, f64, f64),
+    /// Clearance factor of each pixel of the box (row-major; [`NodeMask::clearance`]), set
+    /// once per fit on the start planes by [`FieldBox::set_clearance`]: the fit moves the
+    /// planes by a small fraction of a cell, and the distance search is the costliest part of
+    /// a pixel's weight.
+    clearance: Vec<f32>,
 }
 
 impl FieldBox {
@@ -884,7 +889,22 @@ impl FieldBox {
             rows,
             center: (cx, cy),
             frame: (0.0, 0.0, s),
+            clearance: Vec::new(),
         })
+    }
+
+    /// Fills [`FieldBox::clearance`] for `mask` at the lattice coordinates of `planes`.
+    fn set_clearance(&mut self, planes: &[PhasePlane; 2], mask: &NodeMask) {
+        let mut clearance = Vec::with_capacity(self.rows.len() * self.cols.len());
+        for row in self.rows.clone() {
+            let y = row as f64 - self.center.1;
+            for col in self.cols.clone() {
+                let x = col as f64 - self.center.0;
+                let v = planes.map(|p| p.at(x, y) / PI);
+                clearance.push(mask.clearance(v) as f32);
+            }
+        }
+        self.clearance = clearance;
     }
 
     /// The pixels of the field with a non-zero layout weight, row by row; `nodes` holds the
@@ -976,11 +996,8 @@ impl Iterator for FieldPixels<'_> {
             self.half = [half[0] * self.half_step[0], half[1] * self.half_step[1]];
             let u = [self.planes[0].at(x, y) / TAU, self.planes[1].at(x, y) / TAU];
             let (layout, w) = self.weights.weight(u, [half[0].re, half[1].re]);
-            let clear = if layout > 0.0 {
-                self.mask.clearance([2.0 * u[0], 2.0 * u[1]])
-            } else {
-                0.0
-            };
+            let index = (row - f.rows.start) * f.cols.len() + (col - f.cols.start);
+            let clear = f.clearance.get(index).copied().unwrap_or(0.0) as f64;
             let (layout, w) = (layout * clear, w * clear);
             let g = self
                 .pixels
@@ -999,7 +1016,7 @@ impl Iterator for FieldPixels<'_> {
                     z,
                     cell: self.mask.index(u[0].round() as i64, u[1].round() as i64),
                     advance,
-                    index: (row - f.rows.start) * f.cols.len() + (col - f.cols.start),
+                    index,
                 });
             }
         }
@@ -1117,8 +1134,12 @@ fn fit_dot_field_generic(
     white: Option<f64>,
 ) -> Option<FieldFit> {
     let mut field = FieldBox::new(image, &start, mask)?;
+    field.set_clearance(&start, mask);
     let mut model = first_model(image, &mut field, mask, start)?;
     let wider = mask.with_clearance_for_blur(&model);
+    if let Some(wider) = &wider {
+        field.set_clearance(&start, wider);
+    }
     let mask = wider.as_ref().unwrap_or(mask);
     let (x0, y0, s) = field.frame;
     let mut total_shift = [0.0f64; 2];
