@@ -267,16 +267,16 @@ impl NodeMask {
 
     /// Fills `near_discrepant` for the current clearance.
     fn mark_near_discrepant(&mut self) {
-        let (n1, n2) = (self.cell_dims.0 as i64, self.cell_dims.1 as i64);
         let reach = self.clearance.ceil() as i64;
-        let discrepant = &self.discrepant;
-        let at = |i: i64, j: i64| {
-            i >= 0 && j >= 0 && i < n1 && j < n2 && discrepant[(i * n2 + j) as usize]
-        };
-        self.near_discrepant = (0..n1)
-            .flat_map(|i| (0..n2).map(move |j| (i, j)))
-            .map(|(i, j)| (-reach..=reach).any(|di| (-reach..=reach).any(|dj| at(i + di, j + dj))))
+        let ((v1, v2), (n1, n2)) = (self.first_cell, self.cell_dims);
+        let near: Vec<bool> = (v1..v1 + n1 as i64)
+            .flat_map(|a| (v2..v2 + n2 as i64).map(move |b| (a, b)))
+            .map(|(a, b)| {
+                (-reach..=reach)
+                    .any(|da| (-reach..=reach).any(|db| self.is_discrepant(a + da, b + db)))
+            })
             .collect();
+        self.near_discrepant = near;
     }
 
     /// Whether the dot of node `(k1, k2)` is drawn.
@@ -286,16 +286,17 @@ impl NodeMask {
 
     /// Index of node `(k1, k2)` in per-node arrays of [`NodeMask::len`] entries.
     fn index(&self, k1: i64, k2: i64) -> Option<usize> {
-        let (i, j) = (k1 - self.first.0, k2 - self.first.1);
-        (i >= 0 && j >= 0 && (i as usize) < self.dims.0 && (j as usize) < self.dims.1)
-            .then(|| i as usize * self.dims.1 + j as usize)
+        grid_index(self.first, self.dims, k1, k2)
     }
 
     /// Index of cell `(v1, v2)` in the cell maps.
     fn cell_index(&self, v1: i64, v2: i64) -> Option<usize> {
-        let (i, j) = (v1 - self.first_cell.0, v2 - self.first_cell.1);
-        (i >= 0 && j >= 0 && (i as usize) < self.cell_dims.0 && (j as usize) < self.cell_dims.1)
-            .then(|| i as usize * self.cell_dims.1 + j as usize)
+        grid_index(self.first_cell, self.cell_dims, v1, v2)
+    }
+
+    /// Whether cell `(v1, v2)` is discrepant (false outside the cell maps).
+    fn is_discrepant(&self, v1: i64, v2: i64) -> bool {
+        self.cell_index(v1, v2).is_some_and(|i| self.discrepant[i])
     }
 
     /// Weight factor in `[0, 1]` of a pixel at cell coordinates `v = 2u`: `sin²(π·d/2c)` of its
@@ -314,7 +315,7 @@ impl NodeMask {
         for d1 in -reach..=reach {
             for d2 in -reach..=reach {
                 let (w1, w2) = (c1 + d1, c2 + d2);
-                if self.cell_index(w1, w2).is_some_and(|i| self.discrepant[i]) {
+                if self.is_discrepant(w1, w2) {
                     let gap1 = ((v[0] - w1 as f64).abs() - 0.5).max(0.0);
                     let gap2 = ((v[1] - w2 as f64).abs() - 0.5).max(0.0);
                     nearest = nearest.min(gap1.hypot(gap2));
@@ -338,6 +339,14 @@ impl NodeMask {
     pub fn count(&self) -> usize {
         self.present.iter().filter(|&&r| r).count()
     }
+}
+
+/// Row-major index of `(a, b)` in a grid whose entry `(0, 0)` is `first` and whose extent is
+/// `dims`; `None` outside.
+fn grid_index(first: (i64, i64), dims: (usize, usize), a: i64, b: i64) -> Option<usize> {
+    let (i, j) = (a - first.0, b - first.1);
+    (i >= 0 && j >= 0 && (i as usize) < dims.0 && (j as usize) < dims.1)
+        .then(|| i as usize * dims.1 + j as usize)
 }
 
 /// A mask's node weights for one sweep, padded by one node on every side so that a pixel's
