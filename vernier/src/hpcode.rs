@@ -632,7 +632,7 @@ impl Measure<'_> {
         let image_center = Vector2::new(icx as f64, icy as f64);
         let at = grid.dots.center - image_center;
         let refined = if self.params.field_fit {
-            fine::refine_on_field(image, &grid, reading.id, reading.mirrored)
+            fine::refine_on_field(image, &grid, reading.id)
                 .filter(|(_, fit)| fit.beats_window(analysis.phase_std, at.x, at.y))
         } else {
             None

@@ -151,15 +151,14 @@ pub(crate) fn locate(
 }
 
 /// The marker grid refined on its whole dot field (docs/design.md#field-fit), and the fit.
-/// `id` and `mirrored` are the decoded ones: they say which dots exist and where the finders
-/// are, so that the fit weighs every drawn dot and keeps clear of the finders, the missing ID
-/// dots and the marker's edge. `None` when the field is too small or the fit fails (the
+/// `id` is the decoded one: it says which dots exist; the finders are where `grid` says (a
+/// mirrored marker's grid reads its layout as from the front). The fit weighs every drawn
+/// dot and keeps clear of the finders, the missing ID dots and the marker's edge. `None` when the field is too small or the fit fails (the
 /// caller keeps the window's grid).
 pub(crate) fn refine_on_field(
     image: &GreyImage,
     grid: &MarkerGrid,
     id: u64,
-    mirrored: bool,
 ) -> Option<(MarkerGrid, FieldFit)> {
     let dots = &grid.dots;
     let n = dots.size;
@@ -170,10 +169,11 @@ pub(crate) fn refine_on_field(
         .to_bitmap();
     let last = n as i64 - 1;
     // Nodes (k₁, k₂) = (c, r), dot indices: plane 1 counts columns, plane 2 rows; cell
-    // (v₁, v₂) is bitmap cell (row v₂, col v₁). A mirrored marker shows its layout transposed.
+    // (v₁, v₂) is bitmap cell (row v₂, col v₁). A mirrored marker's grid was located with its
+    // right and bottom finders swapped, so its columns run along the marker's own x axis and
+    // its layout reads as from the front: the same cells, not their transpose.
     let mask = NodeMask::from_cells(0..=last, 0..=last, |v1, v2| {
-        let (row, col) = if mirrored { (v1, v2) } else { (v2, v1) };
-        row >= 0 && col >= 0 && bitmap.cell(row as usize, col as usize)
+        v1 >= 0 && v2 >= 0 && bitmap.cell(v2 as usize, v1 as usize)
     });
     let (cx, cy) = image.center();
     let origin = Vector2::new(cx as f64, cy as f64);

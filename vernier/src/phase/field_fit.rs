@@ -67,11 +67,12 @@
 //! the iteration limit (it would be refused there).
 
 use super::noise::{white_noise_variance, NoisePlan};
+use super::normal_equations::NormalEquations;
 use super::plane::{wrap_to_pi, PhasePlane};
 use super::MIN_NOISE_STD;
 use crate::grey_image::GreyImage;
 use crate::order_stats::{median, robust_sigma, TUKEY_BIWEIGHT};
-use nalgebra::{Matrix6, SMatrix, SVector, Vector2, Vector6};
+use nalgebra::{Matrix6, SVector, Vector2, Vector6};
 use num_complex::Complex64;
 use std::f64::consts::{PI, TAU};
 
@@ -311,21 +312,22 @@ impl NodeMask {
             Some(_) => {}
         }
         let reach = self.clearance.ceil() as i64;
-        let mut nearest = f64::INFINITY;
+        // Squared distances in the search, one root at the end.
+        let mut nearest2 = f64::INFINITY;
         for d1 in -reach..=reach {
             for d2 in -reach..=reach {
                 let (w1, w2) = (c1 + d1, c2 + d2);
                 if self.is_discrepant(w1, w2) {
                     let gap1 = ((v[0] - w1 as f64).abs() - 0.5).max(0.0);
                     let gap2 = ((v[1] - w2 as f64).abs() - 0.5).max(0.0);
-                    nearest = nearest.min(gap1.hypot(gap2));
+                    nearest2 = nearest2.min(gap1 * gap1 + gap2 * gap2);
                 }
             }
         }
-        if nearest >= self.clearance {
+        if nearest2 >= self.clearance * self.clearance {
             1.0
         } else {
-            let s = (0.5 * PI * nearest / self.clearance).sin();
+            let s = (0.5 * PI * nearest2.sqrt() / self.clearance).sin();
             s * s
         }
     }
@@ -1056,13 +1058,16 @@ pub fn fit_dot_field(
     while factor < MAX_BINNING && period / (2 * factor) as f64 >= MIN_BINNED_PERIOD {
         factor *= 2;
     }
-    let (width, height) = (
-        field.cols.len() / factor * factor,
-        field.rows.len() / factor * factor,
-    );
-    let mut sub = image
-        .crop(field.cols.start, field.rows.start, width, height)
-        .ok()?;
+    // Bins start on multiples of the factor in image coordinates, not at the field's edge: in
+    // an image of even width and height, a half or quarter turn or a flip then maps bins onto
+    // bins, and the fit of the turned image sees the same binned pixels (the field's box
+    // alone would pair other pixels, which moves the result within its noise).
+    let aligned = |range: &std::ops::Range<usize>| {
+        let start = range.start / factor * factor;
+        (start, (range.end - start) / factor * factor)
+    };
+    let ((left, width), (top, height)) = (aligned(&field.cols), aligned(&field.rows));
+    let mut sub = image.crop(left, top, width, height).ok()?;
     let mut scale = 1;
     while scale < factor {
         let (rb, cb) = (sub.height() / 2, sub.width() / 2);
@@ -1076,8 +1081,8 @@ pub fn fit_dot_field(
     let f = factor as f64;
     let (icx, icy) = image.center();
     let offset = [
-        f * (sub.width() / 2) as f64 + field.cols.start as f64 + (f - 1.0) / 2.0 - icx as f64,
-        f * (sub.height() / 2) as f64 + field.rows.start as f64 + (f - 1.0) / 2.0 - icy as f64,
+        f * (sub.width() / 2) as f64 + left as f64 + (f - 1.0) / 2.0 - icx as f64,
+        f * (sub.height() / 2) as f64 + top as f64 + (f - 1.0) / 2.0 - icy as f64,
     ];
     let to_sub = |p: &PhasePlane| PhasePlane {
         a: f * p.a,
@@ -1362,9 +1367,7 @@ fn iterate(
     } else {
         Vec::new()
     };
-    // Plain arrays in the loop (contiguous rows vectorise); the full matrix, not a triangle.
-    let mut gram = [[0.0f64; UNKNOWNS]; UNKNOWNS];
-    let mut rhs = SVector::<f64, UNKNOWNS>::zeros();
+    let mut equations = NormalEquations::<UNKNOWNS>::new();
     let (mut sum_w, mut sum_w2, mut sum_layout, mut pixels) = (0.0, 0.0, 0.0, 0usize);
     let mut residuals = Vec::new();
     let mut cells = vec![[0.0f64; 2]; mask.len()];
@@ -1422,18 +1425,12 @@ fn iterate(
         }
         basis[9] = p.xn * h;
         basis[10] = p.yn * h;
-        for (i, row) in gram.iter_mut().enumerate() {
-            let wi = w * basis[i];
-            rhs[i] += wi * data;
-            for (g, b) in row.iter_mut().zip(&basis) {
-                *g += wi * b;
-            }
-        }
+        equations.add(&basis, data, w);
     }
     if sum_w <= 0.0 || sum_layout <= 0.0 {
         return None;
     }
-    let normal = SMatrix::<f64, UNKNOWNS, UNKNOWNS>::from_fn(|i, j| gram[i][j]);
+    let (normal, rhs) = equations.finish();
     let inverse = normal.cholesky()?.inverse();
     let x = inverse * rhs;
     let residual_std = robust_sigma(&mut residuals);

@@ -19,6 +19,7 @@ pub mod field_fit;
 pub mod inspect;
 mod lobes;
 mod noise;
+mod normal_equations;
 pub mod plane;
 mod refine;
 mod spectrum;
