@@ -863,6 +863,9 @@ struct FieldBox {
     /// planes by a small fraction of a cell, and the distance search is the costliest part of
     /// a pixel's weight.
     clearance: Vec<f32>,
+    /// Per row of the box, the columns from the first to the last pixel of non-zero clearance
+    /// (the sweeps skip the rest: the corners of a turned marker's box, the image beyond it).
+    spans: Vec<std::ops::Range<usize>>,
 }
 
 impl FieldBox {
@@ -901,21 +904,40 @@ impl FieldBox {
             center: (cx, cy),
             frame: (0.0, 0.0, s),
             clearance: Vec::new(),
+            spans: Vec::new(),
         })
     }
 
     /// Fills [`FieldBox::clearance`] for `mask` at the lattice coordinates of `planes`.
     fn set_clearance(&mut self, planes: &[PhasePlane; 2], mask: &NodeMask) {
         let mut clearance = Vec::with_capacity(self.rows.len() * self.cols.len());
+        let mut spans = Vec::with_capacity(self.rows.len());
         for row in self.rows.clone() {
             let y = row as f64 - self.center.1;
+            let start = clearance.len();
             for col in self.cols.clone() {
                 let x = col as f64 - self.center.0;
                 let v = planes.map(|p| p.at(x, y) / PI);
                 clearance.push(mask.clearance(v) as f32);
             }
+            let row_values = &clearance[start..];
+            let first = row_values.iter().position(|&c| c > 0.0);
+            let last = row_values.iter().rposition(|&c| c > 0.0);
+            spans.push(match (first, last) {
+                (Some(a), Some(b)) => self.cols.start + a..self.cols.start + b + 1,
+                _ => self.cols.start..self.cols.start,
+            });
         }
         self.clearance = clearance;
+        self.spans = spans;
+    }
+
+    /// The columns of `row` that the sweeps visit (all before [`FieldBox::set_clearance`]).
+    fn span(&self, row: usize) -> std::ops::Range<usize> {
+        self.spans
+            .get(row - self.rows.start)
+            .cloned()
+            .unwrap_or(self.cols.clone())
     }
 
     /// The pixels of the field with a non-zero layout weight, row by row; `nodes` holds the
@@ -980,23 +1002,29 @@ impl Iterator for FieldPixels<'_> {
         let f = self.field;
         let (x0, y0, s) = f.frame;
         loop {
-            if self.col >= f.cols.end {
-                self.row += 1;
-                self.col = f.cols.start;
-                self.fresh_row = true;
-            }
             if self.row >= f.rows.end {
                 return None;
             }
+            let span = f.span(self.row);
             if self.fresh_row {
+                if span.is_empty() {
+                    self.row += 1;
+                    continue;
+                }
                 self.fresh_row = false;
                 self.last = None;
+                self.col = span.start;
                 let y = self.row as f64 - f.center.1;
                 let x = self.col as f64 - f.center.0;
                 self.z = self.planes.map(|p| Complex64::from_polar(1.0, p.at(x, y)));
                 self.half = self
                     .planes
                     .map(|p| Complex64::from_polar(1.0, 0.5 * p.at(x, y)));
+            }
+            if self.col >= span.end {
+                self.row += 1;
+                self.fresh_row = true;
+                continue;
             }
             let (row, col) = (self.row, self.col);
             let x = col as f64 - f.center.0;
