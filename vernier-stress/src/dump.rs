@@ -22,6 +22,7 @@ pub fn outcome_json(o: &Outcome) -> Value {
                 "angle": t.angle,
                 "pixel_size": t.pixel_size,
                 "period_px": t.period_px,
+                "mirrored": t.mirrored,
                 "expectation": t.expectation.name(),
             })
         })

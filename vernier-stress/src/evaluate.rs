@@ -8,6 +8,7 @@
 
 use crate::markers::{Expectation, TruthMarker};
 use crate::scene::Scene;
+use std::f64::consts::FRAC_PI_2;
 use vernier::phase::wrap_to_pi;
 use vernier::MarkerPose;
 
@@ -142,7 +143,10 @@ pub fn evaluate(
         let d = &detections[di];
         verdicts[di] = if t.expectation == Expectation::Ignored {
             Verdict::Ignored { truth: ti }
-        } else if d.id == t.id && wrap_to_pi(d.pose.alpha - t.angle).abs() < MAX_ANGLE_ERROR {
+        } else if d.id == t.id
+            && wrap_to_pi(d.pose.alpha - t.angle).abs() < MAX_ANGLE_ERROR
+            && (wrap_to_pi(d.pose.gamma).abs() > FRAC_PI_2) == t.mirrored
+        {
             Verdict::Found {
                 truth: ti,
                 position_error: dist,
@@ -152,7 +156,7 @@ pub fn evaluate(
             }
         } else {
             // A wrong ID, or the right ID with the marker turned (a quarter-turn reading of
-            // a symmetric ID): a wrong answer either way.
+            // a symmetric ID) or seen from the wrong side: a wrong answer either way.
             Verdict::WrongId { truth: ti }
         };
     }

@@ -19,7 +19,10 @@
 //!   4–40 px log-uniform) and stamps (`stamp69x69`, `stampD`, `stampG`, `stamp+` = IDs 0–3,
 //!   4–12 px); 1–3 markers of one scale per scene, full-turn angles, anywhere inside the
 //!   frame, at least 2 periods apart; image sides adapted to the markers (≤ 1600 px, odd and
-//!   even); random polarity, left to the detector (its default finds it per marker).
+//!   even); random polarity, left to the detector (its default finds it per marker); a
+//!   quarter of the HP codes with a non-zero ID seen from the back (mirrored: the detector
+//!   must read the same ID and say so, `gamma = −π`; drawn from a stream of their own, so
+//!   that every other draw of a seed is what it was before).
 //! * Categories: `clean` (optics σ 0.4–0.7 px, 16 bits) and one category per degradation
 //!   ([`degrade::Degradation`]), plus `combined` (2–4 of them).
 //! * Clutter markers: an HP code of the other W in an HP scene is *expected* (the detector's

@@ -148,6 +148,8 @@ pub struct Placed {
     pub alpha: f64,
     /// Pattern units per plane pixel.
     pub pixel_size: f64,
+    /// Seen from its back (a half turn about its x axis): its y axis points the other way.
+    pub mirrored: bool,
     /// Detector expectation.
     pub expectation: Expectation,
 }
@@ -180,7 +182,10 @@ impl Placed {
 
     /// Plane pixel `p` in cell coordinates `(col, row)` from the marker's top-left corner.
     pub fn to_cells(&self, p: Vector2<f64>) -> Vector2<f64> {
-        let local = rotate(p - self.origin, -self.alpha) * self.pixel_size / (PERIOD / 2.0);
+        let mut local = rotate(p - self.origin, -self.alpha) * self.pixel_size / (PERIOD / 2.0);
+        if self.mirrored {
+            local.y = -local.y;
+        }
         local + Vector2::repeat(self.kind.cells() as f64 / 2.0)
     }
 
@@ -244,7 +249,9 @@ impl Placed {
         let j = homography.jacobian(self.origin)?;
         let ax = j * rotate(Vector2::x(), self.alpha);
         let ay = j * rotate(Vector2::y(), self.alpha);
-        // Mean direction of the pattern x axis and of the y axis turned back by 90°.
+        // Mean direction of the pattern x axis and of the y axis turned back by 90° (`ay` is
+        // the direction 90° on from x in the plane; a mirrored marker's y axis is its
+        // opposite, and its angle is still that of its x axis).
         let a1 = ax.y.atan2(ax.x);
         let a2 = ay.y.atan2(ay.x) - std::f64::consts::FRAC_PI_2;
         let angle = vernier::phase::wrap_angle(a1 + vernier::phase::wrap_to_pi(a2 - a1) / 2.0);
@@ -260,6 +267,7 @@ impl Placed {
             angle,
             pixel_size: self.pixel_size / scale,
             period_px: self.period_px() * scale,
+            mirrored: self.mirrored,
             expectation: self.expectation,
         })
     }
@@ -283,6 +291,8 @@ pub struct TruthMarker {
     pub pixel_size: f64,
     /// Grid period at the origin, pixels.
     pub period_px: f64,
+    /// Seen from its back: the detector must say so (`gamma = −π`).
+    pub mirrored: bool,
     /// What the detector should do with it.
     pub expectation: Expectation,
 }

@@ -209,7 +209,9 @@ fn tile_factor(period_px: f64) -> usize {
 }
 
 /// Adds the coverage of `layout`, whose pattern origin lies at pixel `origin` with direction
-/// `alpha` and `pixel_size` pattern units per pixel, into `canvas`.
+/// `alpha` and `pixel_size` pattern units per pixel, into `canvas`; `mirrored`: seen from its
+/// back (a half turn about the pattern's x axis, `gamma = π`: its y axis points the other
+/// way).
 ///
 /// Same image formation as `vernier::render` with an optical blur (area sampling on a grid
 /// `F` times finer, Gaussian blur of `blur_sigma` pixels there, `F × F` binning), on a tile
@@ -222,6 +224,7 @@ pub fn add_marker(
     alpha: f64,
     pixel_size: f64,
     blur_sigma: f64,
+    mirrored: bool,
 ) -> Result<()> {
     if !(pixel_size.is_finite() && pixel_size > 0.0) {
         return Err(StressError::new(format!("pixel size {pixel_size}")));
@@ -235,6 +238,7 @@ pub fn add_marker(
         (b.x, b.bottom()),
         (b.right(), b.bottom()),
     ] {
+        let y = if mirrored { -y } else { y };
         let p = origin + rotate(Vector2::new(x, y), alpha) / pixel_size;
         lo = lo.inf(&p);
         hi = hi.sup(&p);
@@ -256,6 +260,16 @@ pub fn add_marker(
     let fine = |p: f64, o: i64, n: usize| f as f64 * (p - o as f64 + 0.5) - 0.5 - (n / 2) as f64;
     let offset = Vector2::new(fine(origin.x, ox, fw), fine(origin.y, oy, fh));
     let pose = Pose::from_origin_in_image(offset, alpha, pixel_size / f as f64);
+    // Rx(π) turns pattern (x, y) into (x, −y): the same origin needs y of the other sign.
+    let pose = if mirrored {
+        Pose {
+            y: -pose.y,
+            gamma: std::f64::consts::PI,
+            ..pose
+        }
+    } else {
+        pose
+    };
     let mut tile = render(layout, &pose, &RenderOptions::new(fw, fh))?
         .pixels()
         .to_vec();
@@ -336,7 +350,7 @@ mod tests {
         )?;
         // Period 4.5 px: the tile is rendered 4× finer and binned; exact coverage either way.
         let mut canvas = Plane::filled(w, h, 0.0);
-        add_marker(&mut canvas, &layout, origin, 0.4, ps, 0.0)?;
+        add_marker(&mut canvas, &layout, origin, 0.4, ps, 0.0, false)?;
         let worst = full
             .pixels()
             .iter()

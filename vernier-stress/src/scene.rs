@@ -28,6 +28,12 @@ use vernier::{GreyImage, Polarity};
 /// Largest image side, pixels (keeps the time per scene bounded).
 pub const MAX_SIDE: usize = 1600;
 
+/// Share of the scene's HP codes drawn seen from the back (mirrored: the detector must say so,
+/// `gamma = −π`, and read the same ID). Not ID 0, which is symmetric about its diagonal and
+/// reads from the back as from the front, turned; not stamps, whose `+` glyph is symmetric
+/// too.
+const MIRRORED_FRACTION: f64 = 0.25;
+
 /// A degradation category: a clean scene, one degradation, or 2–4 of them combined.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum Category {
@@ -180,6 +186,8 @@ fn period_range(family: Family) -> (f64, f64) {
 #[derive(Clone, Debug)]
 pub struct Generator {
     stamps: StampSet,
+    /// Share of HP codes seen from the back ([`MIRRORED_FRACTION`] by default).
+    mirrored_fraction: f64,
 }
 
 /// Where things may go: image size, homography, what is already placed.
@@ -234,7 +242,18 @@ impl Generator {
     pub fn new(data_dir: &std::path::Path) -> Result<Self> {
         Ok(Generator {
             stamps: StampSet::load(data_dir, PERIOD)?,
+            mirrored_fraction: MIRRORED_FRACTION,
         })
+    }
+
+    /// The same generator drawing no marker seen from the back: the scenes as they were
+    /// before mirrored markers were drawn (regression seeds picked then reproduce what they
+    /// were picked for).
+    pub fn without_mirrored_markers(self) -> Self {
+        Generator {
+            mirrored_fraction: 0.0,
+            ..self
+        }
     }
 
     /// A generator on [`crate::data::data_dir`].
@@ -292,6 +311,7 @@ impl Generator {
                 m.alpha,
                 m.pixel_size,
                 deg.blur_sigma,
+                m.mirrored,
             )?;
         }
         lap("render", &mut timings);
@@ -430,6 +450,9 @@ impl Generator {
             clutter: Vec::new(),
             margin,
         };
+        // Which markers are seen from the back: a stream of its own, so that every other
+        // draw of the scene stays what it was before mirrored markers were added.
+        let mut sides = SmallRng::seed_from_u64(spec.seed ^ 0x6d69_7272_6f72_6564);
         for _shrink in 0..40 {
             let pixel_size = PERIOD / period_px;
             let gap = 2.0 * period_px;
@@ -460,13 +483,18 @@ impl Generator {
                         origin,
                         alpha,
                         pixel_size,
+                        mirrored: false,
                         expectation: Expectation::Expected,
                     };
                     let fp = m.footprint();
                     (layout.fits(&fp, margin) && layout.is_free(&fp, gap)).then_some(m)
                 });
                 match placed {
-                    Some(m) => layout.markers.push(m),
+                    Some(m) => {
+                        let mirrored = matches!(m.kind, MarkerKind::HpCode { id, .. } if id != 0)
+                            && sides.random_bool(self.mirrored_fraction);
+                        layout.markers.push(Placed { mirrored, ..m })
+                    }
                     None => break,
                 }
             }
@@ -545,6 +573,7 @@ impl Generator {
                         origin,
                         alpha: rng.random_range(-PI..PI),
                         pixel_size: PERIOD / p_px,
+                        mirrored: false,
                         expectation: Expectation::Expected,
                     };
                     let fp = m.footprint();

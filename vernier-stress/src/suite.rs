@@ -3,8 +3,8 @@
 //! per-family, per-category tallies.
 
 use crate::error::{Result, StressError};
-use crate::evaluate::{evaluate, SceneResult};
-use crate::markers::Family;
+use crate::evaluate::{evaluate, SceneResult, Verdict};
+use crate::markers::{Expectation, Family};
 use crate::scene::{Category, Generator, Scene, SceneSpec};
 use std::collections::hash_map::Entry;
 use std::collections::{BTreeMap, HashMap};
@@ -191,6 +191,9 @@ pub struct Tally {
     pub detect_ms: f64,
     /// Seeds of the failing scenes (see [`Outcome::failed`]), in run order.
     pub failing: Vec<u64>,
+    /// Expected markers drawn seen from the back (mirrored), and how many of them were found
+    /// (with their ID, angle and side).
+    pub mirrored: (usize, usize),
 }
 
 impl Tally {
@@ -216,6 +219,18 @@ impl Tally {
         if o.failed() {
             self.failing.push(o.scene.spec.seed);
         }
+        let truth = &o.scene.truth;
+        self.mirrored.0 += truth
+            .iter()
+            .filter(|t| t.mirrored && t.expectation == Expectation::Expected)
+            .count();
+        self.mirrored.1 += r
+            .verdicts
+            .iter()
+            .filter(|v| {
+                matches!(v, Verdict::Found { truth: ti, .. } if truth.get(*ti).is_some_and(|t| t.mirrored))
+            })
+            .count();
     }
 
     /// Keeps `(error, seed)` as the worst position error if it is the largest so far.
@@ -241,6 +256,8 @@ impl Tally {
         self.max_angle_error = self.max_angle_error.max(other.max_angle_error);
         self.detect_ms += other.detect_ms;
         self.failing.extend(&other.failing);
+        self.mirrored.0 += other.mirrored.0;
+        self.mirrored.1 += other.mirrored.1;
     }
 
     /// Found fraction of the expected markers (1 when there are none).
@@ -355,7 +372,16 @@ impl Report {
                 out.push_str(&row(c.name(), t));
             }
         }
-        out.push_str(&row("**all**", &self.family_total(family)));
+        let total = self.family_total(family);
+        out.push_str(&row("**all**", &total));
+        let (drawn, found) = total.mirrored;
+        if drawn > 0 {
+            out.push_str(&format!(
+                "\nOf these, {drawn} markers seen from the back (mirrored): {found} found with \
+                 their ID, angle and side ({:.1} %).\n",
+                100.0 * found as f64 / drawn as f64
+            ));
+        }
         out
     }
 

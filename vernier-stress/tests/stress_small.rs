@@ -92,13 +92,18 @@ fn scenes_are_reproducible_from_their_seed() {
 /// blob darker than the dots beside a finder (52831: read a half-turn while the corners were
 /// judged against thresholds extrapolated from the inner dots' quadrants, a tried design); and
 /// a marker tilted by 23° whose edge dots lie 0.3 period off the window's linear grid (52669:
-/// missed until the ID edges were sampled with their reference dots' local shift).
+/// missed until the ID edges were sampled with their reference dots' local shift). These and
+/// the seeds below are drawn as they were picked, with no marker seen from the back (52669's
+/// marker is drawn mirrored now, and under that tilt its finders' legs leave the linear grid's
+/// reach, one of the perspective misses of the bench).
 const REGRESSION_SEEDS: [u64; 10] = [119, 141, 427, 581, 691, 1505, 2143, 52669, 52831, 59189];
 
 /// Runs the HP code scenes of `seeds`, prints their table and checks that every marker is found
 /// with its ID and nothing false is reported; returns their tally.
 fn every_hp_marker_read_right(seeds: &[u64]) -> Tally {
-    let generator = Generator::from_env().unwrap_or_else(|e| panic!("{e}"));
+    let generator = Generator::from_env()
+        .unwrap_or_else(|e| panic!("{e}"))
+        .without_mirrored_markers();
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut report = Report::default();
     run(&generator, seeds, threads, &mut |o| report.add(&o))
