@@ -153,8 +153,8 @@ pub(crate) fn locate(
 /// The marker grid refined on its whole dot field (docs/design.md#field-fit), and the fit.
 /// `id` is the decoded one: it says which dots exist; the finders are where `grid` says (a
 /// mirrored marker's grid reads its layout as from the front). The fit weighs every drawn
-/// dot and keeps clear of the finders, the missing ID dots and the marker's edge. `None` when the field is too small or the fit fails (the
-/// caller keeps the window's grid).
+/// dot and keeps clear of the finders, the missing ID dots and the marker's edge. `None` when
+/// the field is too small or the fit fails (the caller keeps the window's grid).
 pub(crate) fn refine_on_field(
     image: &GreyImage,
     grid: &MarkerGrid,

@@ -965,6 +965,7 @@ impl FieldBox {
             fresh_row: true,
             z: [Complex64::default(); 2],
             last: None,
+            row_end: self.cols.start,
         }
     }
 }
@@ -993,6 +994,8 @@ struct FieldPixels<'a> {
     z: [Complex64; 2],
     /// Last column visited in this row.
     last: Option<usize>,
+    /// End of this row's span ([`FieldBox::span`]).
+    row_end: usize,
 }
 
 impl Iterator for FieldPixels<'_> {
@@ -1006,8 +1009,8 @@ impl Iterator for FieldPixels<'_> {
             if self.row >= f.rows.end {
                 return None;
             }
-            let span = f.span(self.row);
             if self.fresh_row {
+                let span = f.span(self.row);
                 if span.is_empty() {
                     self.row += 1;
                     continue;
@@ -1015,6 +1018,7 @@ impl Iterator for FieldPixels<'_> {
                 self.fresh_row = false;
                 self.last = None;
                 self.col = span.start;
+                self.row_end = span.end;
                 let y = self.row as f64 - f.center.1;
                 let x = self.col as f64 - f.center.0;
                 self.z = self.planes.map(|p| Complex64::from_polar(1.0, p.at(x, y)));
@@ -1022,7 +1026,7 @@ impl Iterator for FieldPixels<'_> {
                     .planes
                     .map(|p| Complex64::from_polar(1.0, 0.5 * p.at(x, y)));
             }
-            if self.col >= span.end {
+            if self.col >= self.row_end {
                 self.row += 1;
                 self.fresh_row = true;
                 continue;
