@@ -227,8 +227,9 @@ impl Tally {
         self.mirrored.1 += r
             .verdicts
             .iter()
-            .filter(|v| {
-                matches!(v, Verdict::Found { truth: ti, .. } if truth.get(*ti).is_some_and(|t| t.mirrored))
+            .filter(|v| match v {
+                Verdict::Found { truth: ti, .. } => truth.get(*ti).is_some_and(|t| t.mirrored),
+                _ => false,
             })
             .count();
     }

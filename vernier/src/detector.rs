@@ -69,8 +69,9 @@ impl MarkerPose {
     /// the fit (docs/design.md#uncertainty): √12 (periodic grids, HP codes and stamps average
     /// both planes' directions under the engine's sine-cubed window, 4.85/√2 = 3.43; Megarena
     /// fits its planes uniformly over the dots and takes one, √12 = 3.46). When the fit
-    /// measured it ([`MarkerPose::yaw_std`], the whole-field fit), that σ is used instead. Unobserved axes (z, roll, pitch for planar poses) get a variance of `1e6`
-    /// (large, per ROS convention for "unknown").
+    /// measured it ([`MarkerPose::yaw_std`], the whole-field fit), that σ is used instead.
+    /// Unobserved axes (z, roll, pitch for planar poses) get a variance of `1e6` (large, per
+    /// ROS convention for "unknown").
     ///
     /// With out-of-plane angles ([`MarkerPose::pose_3d_cue_strength`] set), `cTp`'s rotation
     /// `Rz(α)·Ry(β)·Rx(γ)` is roll `γ`, pitch `β`, yaw `α`, and the roll/pitch block is the

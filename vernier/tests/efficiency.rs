@@ -388,7 +388,7 @@ const TARGET: [f64; 3] = [1.3, 1.3, 1.3];
 
 #[test]
 fn periodic_grid_efficiency_and_uncertainty() {
-    // Measured RMS/CRLB at 1 %: (0.96, 0.87, 1.18); 800 renders give (0.96–1.02, 0.94–1.01,
+    // Measured RMS/CRLB at 1 %: (0.96, 0.87, 1.19); 800 renders give (0.96–1.02, 0.94–1.01,
     // 1.12–1.17): the position estimate is efficient, the 0.87 a draw of 200 renders.
     check(periodic_case(), TARGET);
 }
@@ -406,14 +406,14 @@ fn periodic_grid_engine_planes_uncertainty() {
 
 #[test]
 fn hp_code_efficiency_and_uncertainty() {
-    // Measured RMS/CRLB at 1 %: (1.26, 1.13, 1.19); (1.83, 1.79, 1.59) with free harmonic
+    // Measured RMS/CRLB at 1 %: (1.28, 1.14, 1.25); (1.83, 1.79, 1.59) with free harmonic
     // phases and the regular dots only, (3.66, 4.11, 8.26) on the window alone.
     check(hpcode_case(), TARGET);
 }
 
 #[test]
 fn stamp_efficiency_and_uncertainty() {
-    // Measured RMS/CRLB at 1 %: (1.04, 1.17, 1.12); (1.68, 1.73, 1.39) with free harmonic
+    // Measured RMS/CRLB at 1 %: (1.03, 1.19, 1.12); (1.68, 1.73, 1.39) with free harmonic
     // phases and the regular dots only, (3.22, 3.03, 5.23) on the window alone.
     check(stamp_case(), TARGET);
 }

@@ -43,13 +43,14 @@
 //!   error is in every cell alike and smooth model error (vignetting) in neighbouring ones.
 //!   The biweight's cut-off is `c = max(4.685·σ, 2B)`, `σ` = 1.4826 × the median absolute
 //!   residual (95 % efficiency on Gaussian noise), at least twice the fundamental's amplitude
-//!   `B` ([`MIN_CUTOFF`]), so that only gross departures count as outliers on clean images. The first iteration is not
-//!   weighted; the first two set the weights from their residuals, and later ones too while
-//!   their steps stay large (a start spoiled by dust over the window, or an unweighted step
-//!   pulled by a blob darker than the dots: weights judged on a model far from its solution
-//!   count its own error as outliers). The next iteration freezes the weights, so the last
-//!   iterations solve one fixed weighted least-squares problem at Gauss–Newton's quadratic
-//!   rate (reweighting each time, as plain IRLS does, converges linearly).
+//!   `B` ([`MIN_CUTOFF`]), so that only gross departures count as outliers on clean images.
+//!   The first iteration is not weighted; the first two set the weights from their
+//!   residuals, and later ones too while their steps stay large (a start spoiled by dust over
+//!   the window, or an unweighted step pulled by a blob darker than the dots: weights judged on
+//!   a model far from its solution count its own error as outliers). The next iteration
+//!   freezes the weights, so the last iterations solve one fixed weighted least-squares
+//!   problem at Gauss–Newton's quadratic rate (reweighting each time, as plain IRLS does,
+//!   converges linearly).
 //!
 //! **Breakdown.** The scales are medians: up to half of the cells (or pixels) may be outliers.
 //! Both weights redescend to 0, so a gross outlier has no influence at all. Like every
