@@ -555,6 +555,7 @@ impl Measure<'_> {
             coarse,
             steps(triple.right - triple.corner),
             steps(triple.bottom - triple.corner),
+            MIN_PRECHECK,
         );
         if precheck < MIN_PRECHECK {
             return reject(&format!("no dot grid around the centre ({precheck:.2})"));

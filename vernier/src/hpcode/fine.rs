@@ -22,11 +22,24 @@ use std::f64::consts::{FRAC_PI_2, PI, TAU};
 const MAX_AXIS_ERROR: f64 = 0.3;
 /// Largest relative difference between the grid period and twice the finders' module.
 const MAX_PERIOD_ERROR: f64 = 0.25;
-/// Largest distance of a finder leg from a whole number of periods, periods. Rounding is
-/// unambiguous below 0.5; the planes are those of the window at the marker's centre, so under
-/// perspective (a marker tilted by 25°, the scale changing by several per cent across it) the
-/// legs they measure are off by up to ~0.3 period.
+/// Largest distance of a finder from where the planes and a whole number of periods between
+/// the finders put it (perspective included, [`finder_view`]), periods.
 const MAX_LEG_ERROR: f64 = 0.35;
+/// Fewest periods between two finders (`W ≥ 17`).
+const MIN_LEGS: f64 = 5.0;
+/// Largest perspective accepted: `|p₁| + |p₂|` times the half-width of the marker, the
+/// relative change of depth across it (~0.12 for a marker tilted by 25° that fills a
+/// 1.5-diagonal focal length camera's view; beyond, the two finder legs' lengths may differ
+/// by a third, which also an unrelated triple of finder-like shapes could show).
+const MAX_DEPTH_CHANGE: f64 = 0.25;
+/// Gauss–Newton iterations of [`tilted_view`] (it converges in 3–4).
+const VIEW_ITERATIONS: usize = 10;
+/// The tilted view of the finders is taken when it puts them this many times closer to their
+/// places than the untilted one, at least ([`finder_view`]): a tilt moves all three finders
+/// off the linear grid in its own pattern, which the two projective terms then explain
+/// (misfit 0.5 → below 0.04 period on the stress suite's steeply tilted markers), while a
+/// finder moved alone by dust leaves most of its misfit (0.10 → 0.09 on stress scene 52634).
+const TILT_GAIN: f64 = 0.5;
 
 /// Marker grid measured in a window, in image pixels.
 #[derive(Clone, Copy, Debug)]
@@ -110,23 +123,18 @@ pub(crate) fn locate(
     // Gradients as rows: M·d = phase change over the displacement d.
     let m = Matrix2::new(plane_x.a, plane_x.b, plane_y.a, plane_y.b);
     let inverse = m.try_inverse()?;
-    // Finder legs in periods: (L, 0) and (0, L) with L = (W − 7)/2 a whole number.
-    let leg_x = m * ex / TAU;
-    let leg_y = m * ey / TAU;
-    let legs = 0.5 * (leg_x.x + leg_y.y);
-    let whole = legs.round();
-    if whole < 5.0
-        || [leg_x.x - whole, leg_y.y - whole, leg_x.y, leg_y.x]
-            .iter()
-            .any(|e| e.abs() > MAX_LEG_ERROR)
-    {
-        log::trace!("finder legs {leg_x:?}, {leg_y:?} periods: not whole");
-        return None;
-    }
-    let code_size = 7 + 2 * whole as usize;
+    // The finders in periods along the window's lattice axes, from the window centre.
+    let lattice = |p: Vector2<f64>| m * (p - window_center) / TAU;
+    let finders = [
+        lattice(triple.corner),
+        lattice(triple.right),
+        lattice(triple.bottom),
+    ];
+    let view = finder_view(&finders)?;
+    let code_size = 7 + 2 * view.legs as usize;
     // Centre cell (W − 1)/2 lies (W − 1)/4 periods from the corner dot (phase 0).
     let center_phase = if (code_size - 1) % 4 == 0 { 0.0 } else { PI };
-    let coarse = triple.center() - window_center;
+    let coarse = inverse * (TAU * view.center);
     let kx = ((plane_x.at(coarse.x, coarse.y) - center_phase) / TAU).round();
     let ky = ((plane_y.at(coarse.x, coarse.y) - center_phase) / TAU).round();
     let offset = inverse
@@ -142,12 +150,28 @@ pub(crate) fn locate(
         period_shift: (kx, ky),
         code_size,
         dots: DotGrid {
-            center: window_center + offset,
-            step_x: inverse * Vector2::new(TAU, 0.0),
-            step_y: inverse * Vector2::new(0.0, TAU),
-            size: code_size.div_ceil(2),
+            perspective: view.perspective,
+            ..DotGrid::new(
+                window_center + offset,
+                inverse * Vector2::new(TAU, 0.0),
+                inverse * Vector2::new(0.0, TAU),
+                code_size.div_ceil(2),
+            )
         },
     })
+}
+
+/// Where the marker's three finders put it on the lattice of the window's planes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct FinderView {
+    /// Periods between the corner finder and each of the others, `(W − 7)/2`.
+    legs: f64,
+    /// Marker centre, periods along the lattice axes from the window centre.
+    center: Vector2<f64>,
+    /// Perspective `p` per period ([`DotGrid::perspective`]).
+    perspective: Vector2<f64>,
+    /// Largest distance of a finder from where the view puts it, periods.
+    misfit: f64,
 }
 
 /// The marker grid refined on its whole dot field (docs/design.md#field-fit), and the fit.
@@ -206,12 +230,119 @@ pub(crate) fn refine_on_field(
         ..grid.plane_y
     };
     refined.dots = DotGrid {
-        center,
-        step_x: inverse * Vector2::new(TAU, 0.0),
-        step_y: inverse * Vector2::new(0.0, TAU),
-        size: n,
+        perspective: dots.perspective,
+        ..DotGrid::new(
+            center,
+            inverse * Vector2::new(TAU, 0.0),
+            inverse * Vector2::new(0.0, TAU),
+            n,
+        )
     };
     Some((refined, fit))
+}
+
+/// The view of the finders `[corner, right, bottom]` (periods along the lattice axes from the
+/// window centre): the whole number of periods `L` between them, the marker centre `c` and
+/// the perspective `p` for which `c + u/(1 + p·u)` puts them where they are, `u` their marker
+/// coordinates `(∓L/2, ∓L/2)` from the centre. That is the homography of a tilted marker
+/// whose steps at the centre are the planes' (measured there): three finders fix its centre
+/// and the two projective terms with two equations to spare, which check that the planes
+/// belong to these finders.
+///
+/// `L` is the legs' mean rounded: a tilt stretches one leg and shrinks the other, so their
+/// mean stays within a few hundredths of a period of `L` (small, noisy finders let a
+/// neighbouring `L` fit with a spurious tilt; it is never tried). The tilted view is taken
+/// only when it puts the finders at least [`TILT_GAIN`] times closer to their places than
+/// the untilted one (`p = 0`): a finder that dust or blur moves off its place is not a tilt,
+/// and a spurious `p` would move the far dots of the grid. `None` when the view leaves a
+/// finder more than [`MAX_LEG_ERROR`] from its place.
+fn finder_view(finders: &[Vector2<f64>; 3]) -> Option<FinderView> {
+    let [corner, right, bottom] = *finders;
+    let legs = (0.5 * ((right - corner).x + (bottom - corner).y)).round();
+    let flat = untilted_view(finders, legs);
+    let tilted = tilted_view(finders, legs).filter(|t| t.misfit < TILT_GAIN * flat.misfit);
+    log::trace!("finders' view: {flat:?}, tilted {tilted:?}");
+    match tilted.unwrap_or(flat) {
+        v if legs >= MIN_LEGS && v.misfit <= MAX_LEG_ERROR => Some(v),
+        _ => {
+            log::trace!("finders {finders:?} periods: no view of {legs} periods fits");
+            None
+        }
+    }
+}
+
+/// The finders' marker coordinates `u` for `legs` periods between them, periods from the
+/// centre.
+fn finder_coordinates(legs: f64) -> [Vector2<f64>; 3] {
+    let h = legs / 2.0;
+    [
+        Vector2::new(-h, -h),
+        Vector2::new(h, -h),
+        Vector2::new(-h, h),
+    ]
+}
+
+/// Largest distance of `finders` from `places`, periods.
+fn misfit(finders: &[Vector2<f64>; 3], places: [Vector2<f64>; 3]) -> f64 {
+    (0..3)
+        .map(|i| (finders[i] - places[i]).amax())
+        .fold(0.0, f64::max)
+}
+
+/// [`finder_view`] of an untilted marker (`p = 0`, least squares: the mean offset).
+fn untilted_view(finders: &[Vector2<f64>; 3], legs: f64) -> FinderView {
+    let u = finder_coordinates(legs);
+    let center = (0..3).map(|i| finders[i] - u[i]).sum::<Vector2<f64>>() / 3.0;
+    FinderView {
+        legs,
+        center,
+        perspective: Vector2::zeros(),
+        misfit: misfit(finders, u.map(|u| center + u)),
+    }
+}
+
+/// [`finder_view`] of a tilted marker: Gauss–Newton on `(c, p)` from the untilted view;
+/// `None` when singular or beyond [`MAX_DEPTH_CHANGE`].
+fn tilted_view(finders: &[Vector2<f64>; 3], legs: f64) -> Option<FinderView> {
+    let u = finder_coordinates(legs);
+    let start = untilted_view(finders, legs).center;
+    // Unknowns (c₁, c₂, p₁, p₂).
+    let mut x = nalgebra::Vector4::new(start.x, start.y, 0.0, 0.0);
+    let places = |x: &nalgebra::Vector4<f64>| {
+        let (c, p) = (Vector2::new(x[0], x[1]), Vector2::new(x[2], x[3]));
+        u.map(|u| c + u / (1.0 + p.dot(&u)))
+    };
+    for _ in 0..VIEW_ITERATIONS {
+        let p = Vector2::new(x[2], x[3]);
+        let mut jacobian = nalgebra::Matrix6x4::zeros();
+        let mut r = nalgebra::Vector6::zeros();
+        for (i, place) in places(&x).iter().enumerate() {
+            let depth = 1.0 + p.dot(&u[i]);
+            for axis in 0..2 {
+                let row = 2 * i + axis;
+                jacobian[(row, axis)] = 1.0;
+                jacobian[(row, 2)] = -u[i][axis] * u[i].x / (depth * depth);
+                jacobian[(row, 3)] = -u[i][axis] * u[i].y / (depth * depth);
+                r[row] = finders[i][axis] - place[axis];
+            }
+        }
+        // Least-squares step: the places move by J·δ towards the finders.
+        let step = (jacobian.transpose() * jacobian).try_inverse()? * (jacobian.transpose() * r);
+        x += step;
+        if step.amax() < 1e-9 {
+            break;
+        }
+    }
+    let perspective = Vector2::new(x[2], x[3]);
+    // The depth change at the marker's corners (two periods beyond its finders' centres).
+    let depth_change = perspective.abs().sum() * (legs / 2.0 + 2.0);
+    let misfit = misfit(finders, places(&x));
+    (depth_change <= MAX_DEPTH_CHANGE && misfit.is_finite()).then_some(FinderView {
+        legs,
+        center: Vector2::new(x[0], x[1]),
+        perspective,
+        misfit,
+    })
 }
 
 #[cfg(test)]
@@ -272,6 +403,44 @@ mod tests {
         let mut wrong = t;
         wrong.module_px = 8.0;
         assert!(locate(&planes(alpha, node), &wrong, window_center).is_none());
+    }
+
+    #[test]
+    fn tilted_marker_finders_give_its_perspective() {
+        // W = 37 (legs of 15 periods), the centre a node, seen under a homography whose depth
+        // changes by 12 % across the marker: the finders' legs are 0.5 period off a linear
+        // grid, beyond what rounding accepts.
+        let alpha: f64 = 0.4;
+        let window_center = Vector2::new(300.0, 200.0);
+        let node = Vector2::new(3.0, -4.0);
+        let center = window_center + node;
+        let p = Vector2::new(0.005, -0.003);
+        let (s, c) = alpha.sin_cos();
+        let steps = Matrix2::new(c, -s, s, c) * 10.0;
+        let seen = |u: Vector2<f64>| center + steps * u / (1.0 + p.dot(&u));
+        let t = FinderTriple {
+            corner: seen(Vector2::new(-7.5, -7.5)),
+            right: seen(Vector2::new(7.5, -7.5)),
+            bottom: seen(Vector2::new(-7.5, 7.5)),
+            module_px: 5.0,
+            polarity: Polarity::BrightDots,
+            misfit: 0.0,
+        };
+        let g = locate(&planes(alpha, node), &t, window_center).unwrap();
+        assert_eq!(g.code_size, 37);
+        assert!((g.dots.center - center).norm() < 1e-9);
+        assert!(
+            (g.dots.perspective - p).norm() < 1e-9,
+            "{:?}",
+            g.dots.perspective
+        );
+        // The ID row's dots are where the homography puts them.
+        let corner_dot = g.dots.at(0.0, 18.0);
+        assert!((corner_dot - seen(Vector2::new(9.0, -9.0))).norm() < 1e-6);
+        // Finders whose legs differ by a third are not one marker, whatever the tilt.
+        let mut stretched = t;
+        stretched.bottom = t.corner + (t.bottom - t.corner) * 4.0 / 3.0;
+        assert!(locate(&planes(alpha, node), &stretched, window_center).is_none());
     }
 
     #[test]

@@ -23,13 +23,31 @@ pub(crate) struct DotGrid {
     pub step_y: Vector2<f64>,
     /// Dots per side `n` (odd).
     pub size: usize,
+    /// Perspective `p` of a tilted marker, per period: the dot `u = (c − h, r − h)` periods
+    /// from the centre is at `center + (step_x·u₁ + step_y·u₂)/(1 + p·u)` (the general
+    /// homography with this centre and these steps there); zero for an untilted marker.
+    pub perspective: Vector2<f64>,
 }
 
 impl DotGrid {
+    /// The grid of an untilted marker: `n` dots per side, the centre dot at `center`, steps of
+    /// one period along the pattern axes (image pixels).
+    pub fn new(center: Vector2<f64>, step_x: Vector2<f64>, step_y: Vector2<f64>, n: usize) -> Self {
+        DotGrid {
+            center,
+            step_x,
+            step_y,
+            size: n,
+            perspective: Vector2::zeros(),
+        }
+    }
+
     /// Image position of the point at dot coordinates `(r, c)` (fractional allowed).
-    fn at(&self, r: f64, c: f64) -> Vector2<f64> {
+    pub(crate) fn at(&self, r: f64, c: f64) -> Vector2<f64> {
         let h = (self.size - 1) as f64 / 2.0;
-        self.center + self.step_x * (c - h) + self.step_y * (r - h)
+        let u = Vector2::new(c - h, r - h);
+        let depth = 1.0 + self.perspective.dot(&u);
+        self.center + (self.step_x * u.x + self.step_y * u.y) / depth
     }
 }
 
@@ -285,27 +303,26 @@ pub(crate) fn grid_support(image: &GreyImage, polarity: Polarity, grid: &DotGrid
 /// Cheap test, before any phase analysis, that a dot grid surrounds `center`: on the 7×7
 /// lattice of period steps `step_x`, `step_y` (from the finders' size and directions), the
 /// fraction of lattice points brighter (in material) than the mean of the four cells between
-/// them and their neighbours, for the better of the two lattice phases (the centre is a dot,
-/// or the gap between four dots, depending on `W`). About ½ on texture that is not a grid,
-/// near 1 on a marker's dot field; the finders locate the centre to a fraction of a period.
+/// them and their neighbours, for the best of 16 lattice phases ([`UNTILTED_SHIFTS`] first), or the first
+/// that reaches `enough`. About ½ on texture that is not a grid, near 1 on a marker's dot
+/// field. The finders locate the centre to a fraction of a period: a dot or the gap between
+/// four dots, depending on `W`, on an untilted marker (the first two phases tried); up to
+/// ~0.3 period off either on a steeply tilted one (the midpoint of two finders is not the
+/// image of the marker's centre under perspective).
 pub(crate) fn grid_precheck(
     image: &GreyImage,
     polarity: Polarity,
     center: Vector2<f64>,
     step_x: Vector2<f64>,
     step_y: Vector2<f64>,
+    enough: f64,
 ) -> f64 {
-    let grid = DotGrid {
-        center,
-        step_x,
-        step_y,
-        size: 7,
-    };
-    let score = |phase: f64| -> Option<f64> {
+    let grid = DotGrid::new(center, step_x, step_y, 7);
+    let score = |(shift_r, shift_c): (f64, f64)| -> Option<f64> {
         let mut above = 0usize;
         for r in 0..7 {
             for c in 0..7 {
-                let (r, c) = (r as f64 + phase, c as f64 + phase);
+                let (r, c) = (r as f64 + shift_r, c as f64 + shift_c);
                 let dot = dot_level(image, polarity, grid.at(r, c), &grid)?;
                 let mut gaps = 0.0;
                 for (dr, dc) in [(-0.5, -0.5), (-0.5, 0.5), (0.5, -0.5), (0.5, 0.5)] {
@@ -316,8 +333,23 @@ pub(crate) fn grid_precheck(
         }
         Some(above as f64 / 49.0)
     };
-    score(0.0).unwrap_or(0.0).max(score(0.5).unwrap_or(0.0))
+    let quarters = (0..16)
+        .map(|k| ((k / 4) as f64 / 4.0, (k % 4) as f64 / 4.0))
+        .filter(|shift| !UNTILTED_SHIFTS.contains(shift));
+    let mut best = 0.0f64;
+    for shift in UNTILTED_SHIFTS.into_iter().chain(quarters) {
+        best = best.max(score(shift).unwrap_or(0.0));
+        if best >= enough {
+            break;
+        }
+    }
+    best
 }
+
+/// The lattice phases of an untilted marker's centre, periods along its rows and columns: a
+/// dot, or the gap between four dots. [`grid_precheck`] tries them first, then every other
+/// phase a quarter period apart, so the best is within an eighth of a period of the grid's.
+const UNTILTED_SHIFTS: [(f64, f64); 2] = [(0.0, 0.0), (0.5, 0.5)];
 
 /// Whether the four corners of the marker show what they must: a finder square at the three
 /// finder corners and plain dots at the fourth. A finder differs from a block of dots by its
@@ -345,10 +377,14 @@ pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &D
     // against the threshold of the 4×4 inner dots next to that corner: vignetting or an
     // illumination gradient may move the level by more than the dot contrast across the
     // marker (all ink at one corner, none at the other, against one threshold), and the
-    // nearest block keeps dust over one block to its own corner.
+    // nearest block keeps dust over one block to its own corner. A block whose dots do not
+    // stand out from its bridges (dust over most of it) takes the threshold of all the inner
+    // dots instead, a median that dust over a minority of them does not move.
+    let inner = 4..n - 4;
     let corner = |(r0, c0): (usize, usize)| -> Option<(f64, f64, f64)> {
         let (rows, cols) = (inner_block(r0, n), inner_block(c0, n));
-        let threshold = bridge_threshold(image, polarity, grid, rows, cols)?;
+        let threshold = bridge_threshold(image, polarity, grid, rows, cols)
+            .or_else(|| bridge_threshold(image, polarity, grid, inner.clone(), inner.clone()))?;
         let ink = |p: Vector2<f64>| -> Option<f64> {
             Some(f64::from(u8::from(
                 dot_level(image, polarity, p, grid)? > threshold,
@@ -481,12 +517,12 @@ mod tests {
         let center = Vector2::new(cx as f64, cy as f64) + pose.origin_in_image();
         let (s, c) = pose.alpha.sin_cos();
         let k = period / pose.pixel_size;
-        DotGrid {
+        DotGrid::new(
             center,
-            step_x: Vector2::new(c, s) * k,
-            step_y: Vector2::new(-s, c) * k,
+            Vector2::new(c, s) * k,
+            Vector2::new(-s, c) * k,
             size,
-        }
+        )
     }
 
     #[test]
