@@ -191,6 +191,9 @@ pub struct Tally {
     pub detect_ms: f64,
     /// Seeds of the failing scenes (see [`Outcome::failed`]), in run order.
     pub failing: Vec<u64>,
+    /// Seeds of the scenes with a wrong ID or pose or a false marker, in run order (listed in
+    /// full: they are the suite's gravest failures).
+    pub wrong: Vec<u64>,
     /// Expected markers drawn seen from the back (mirrored), and how many of them were found
     /// (with their ID, angle and side).
     pub mirrored: (usize, usize),
@@ -218,6 +221,9 @@ impl Tally {
         self.detect_ms += r.detect_ms;
         if o.failed() {
             self.failing.push(o.scene.spec.seed);
+        }
+        if r.wrong_id > 0 || r.false_markers > 0 {
+            self.wrong.push(o.scene.spec.seed);
         }
         let truth = &o.scene.truth;
         self.mirrored.0 += truth
@@ -257,6 +263,7 @@ impl Tally {
         self.max_angle_error = self.max_angle_error.max(other.max_angle_error);
         self.detect_ms += other.detect_ms;
         self.failing.extend(&other.failing);
+        self.wrong.extend(&other.wrong);
         self.mirrored.0 += other.mirrored.0;
         self.mirrored.1 += other.mirrored.1;
     }
@@ -386,7 +393,8 @@ impl Report {
         out
     }
 
-    /// The failing seeds, first `limit` per (family, category).
+    /// The failing seeds, first `limit` per (family, category), then every seed with a wrong
+    /// ID or pose or a false marker.
     pub fn failing_list(&self, limit: usize) -> String {
         let mut out = String::new();
         for ((f, c), t) in &self.cells {
@@ -407,6 +415,13 @@ impl Report {
                 shown.join(" "),
                 if t.failing.len() > limit { " …" } else { "" }
             ));
+            if !t.wrong.is_empty() {
+                let wrong: Vec<String> = t.wrong.iter().map(|s| s.to_string()).collect();
+                out.push_str(&format!(
+                    "  - wrong ID or pose, or false: {}\n",
+                    wrong.join(" ")
+                ));
+            }
         }
         if out.is_empty() {
             out.push_str("- none\n");
