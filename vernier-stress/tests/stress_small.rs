@@ -87,15 +87,15 @@ fn scenes_are_reproducible_from_their_seed() {
 }
 
 /// HP code scenes that once were missed or misread, most with dust or hair over a corner of a
-/// marker: over a finder (119, 141, 427, 581, 691, 1505, 2143; 581 once read a quarter turn)
-/// and over the dot corner with one finder hidden too (59189, once read as another ID), and a
-/// blob darker than the dots beside a finder (52831: read a half-turn while the corners were
-/// judged against thresholds extrapolated from the inner dots' quadrants, a tried design), two
-/// blobs brighter than the dots over the inner dots beside the dot corner (51666: the corner
-/// check found no threshold there and refused the marker); and a marker tilted by 23° whose edge dots lie 0.3 period off the window's linear grid (52669:
-/// missed until the ID edges were sampled with their reference dots' local shift). These and
-/// the seeds below are drawn as they were picked, with no marker seen from the back (52669's
-/// marker is drawn mirrored now: see [`STEEP_TILT_SEEDS`]).
+/// marker: over a finder (119, 141, 427, 581, 691, 1505, 2143; 581 once read a quarter turn) and
+/// over the dot corner with one finder hidden too (59189, once read as another ID), and a blob
+/// darker than the dots beside a finder (52831: read a half-turn while the corners were judged
+/// against thresholds extrapolated from the inner dots' quadrants, a tried design), two blobs
+/// brighter than the dots over the inner dots beside the dot corner (51666: the corner check found
+/// no threshold there and refused the marker); and a marker tilted by 23° whose edge dots lie 0.3
+/// period off the window's linear grid (52669: missed until the ID edges were sampled with their
+/// reference dots' local shift). These and the seeds below are drawn as they were picked, with no
+/// marker seen from the back (52669's marker is drawn mirrored now: see [`STEEP_TILT_SEEDS`]).
 const REGRESSION_SEEDS: [u64; 11] = [
     119, 141, 427, 581, 691, 1505, 2143, 51666, 52669, 52831, 59189,
 ];

@@ -300,15 +300,15 @@ pub(crate) fn grid_support(image: &GreyImage, polarity: Polarity, grid: &DotGrid
     good as f64 / (dots.len() + gaps.len()) as f64
 }
 
-/// Cheap test, before any phase analysis, that a dot grid surrounds `center`: on the 7×7
-/// lattice of period steps `step_x`, `step_y` (from the finders' size and directions), the
-/// fraction of lattice points brighter (in material) than the mean of the four cells between
-/// them and their neighbours, for the best of 16 lattice phases ([`UNTILTED_SHIFTS`] first), or the first
-/// that reaches `enough`. About ½ on texture that is not a grid, near 1 on a marker's dot
-/// field. The finders locate the centre to a fraction of a period: a dot or the gap between
-/// four dots, depending on `W`, on an untilted marker (the first two phases tried); up to
-/// ~0.3 period off either on a steeply tilted one (the midpoint of two finders is not the
-/// image of the marker's centre under perspective).
+/// Cheap test, before any phase analysis, that a dot grid surrounds `center`: on the 7×7 lattice of
+/// period steps `step_x`, `step_y` (from the finders' size and directions), the fraction of lattice
+/// points brighter (in material) than the mean of the four cells between them and their neighbours.
+/// The finders locate the centre to a fraction of a period: a dot or the gap between four dots,
+/// depending on `W`, on an untilted marker ([`UNTILTED_SHIFTS`], both tried); up to ~0.3 period
+/// off either on a steeply tilted one (the midpoint of two finders is not the image of the marker's
+/// centre under perspective). When neither reaches `enough`, the lattice is also tried at the
+/// quarter-period phase whose central points are the most material. About ½ on texture that is
+/// not a grid, near 1 on a marker's dot field.
 pub(crate) fn grid_precheck(
     image: &GreyImage,
     polarity: Polarity,
@@ -333,22 +333,37 @@ pub(crate) fn grid_precheck(
         }
         Some(above as f64 / 49.0)
     };
-    let quarters = (0..16)
-        .map(|k| ((k / 4) as f64 / 4.0, (k % 4) as f64 / 4.0))
-        .filter(|shift| !UNTILTED_SHIFTS.contains(shift));
-    let mut best = 0.0f64;
-    for shift in UNTILTED_SHIFTS.into_iter().chain(quarters) {
-        best = best.max(score(shift).unwrap_or(0.0));
-        if best >= enough {
-            break;
-        }
+    let untilted = UNTILTED_SHIFTS
+        .iter()
+        .filter_map(|&shift| score(shift))
+        .fold(0.0, f64::max);
+    if untilted >= enough {
+        return untilted;
     }
-    best
+    // The lattice phase where the 3 × 3 central lattice points are the most material, to a
+    // quarter period: one more phase tried, not fourteen (the best of many phases of texture
+    // that is not a grid would pass more often).
+    let material = |(shift_r, shift_c): (f64, f64)| -> Option<f64> {
+        let mut sum = 0.0;
+        for r in 2..5 {
+            for c in 2..5 {
+                let at = grid.at(r as f64 + shift_r, c as f64 + shift_c);
+                sum += dot_level(image, polarity, at, &grid)?;
+            }
+        }
+        Some(sum)
+    };
+    let densest = (0..16)
+        .map(|k| ((k / 4) as f64 / 4.0, (k % 4) as f64 / 4.0))
+        .filter_map(|shift| material(shift).map(|m| (m, shift)))
+        .max_by(|a, b| a.0.total_cmp(&b.0));
+    let shifted = densest.and_then(|(_, shift)| score(shift));
+    log::trace!("grid pre-check: {untilted:.2} untilted, {shifted:.2?} at {densest:.2?}");
+    shifted.map_or(untilted, |s| untilted.max(s))
 }
 
 /// The lattice phases of an untilted marker's centre, periods along its rows and columns: a
-/// dot, or the gap between four dots. [`grid_precheck`] tries them first, then every other
-/// phase a quarter period apart, so the best is within an eighth of a period of the grid's.
+/// dot, or the gap between four dots.
 const UNTILTED_SHIFTS: [(f64, f64); 2] = [(0.0, 0.0), (0.5, 0.5)];
 
 /// Whether the four corners of the marker show what they must: a finder square at the three

@@ -20,10 +20,11 @@
 //! * **Which model.** `g = μ + μ_X·X + μ_Y·Y + Σ_l (B_l + E_l·X + F_l·Y)·cos φ_l +
 //!   (1 + η_X·X + η_Y·Y)·Σ_h A_h·cos(h·φ)`: background, fundamental amplitudes and the
 //!   harmonics' gain with linear trends (illumination), and every dot harmonic `h` up to order
-//!   [`MAX_ORDER`] per axis whose amplitude reaches [`MIN_HARMONIC`] of the fundamental, each
-//!   with a free real amplitude. The harmonics are tied to the dot centres (phase 0 there, as
-//!   the fundamentals'): the dots are taken as point-symmetric, which sharp, blurred or
-//!   pixel-integrated dots of any round or square shape are, so every harmonic informs the
+//!   `MAX_ORDER` (5) per axis whose amplitude reaches `MIN_HARMONIC` (1e-3) of the
+//!   fundamental, each with a free real amplitude. The harmonics are tied to the dot centres
+//!   (phase 0 there, as the fundamentals'): the dots are taken as point-symmetric, which
+//!   sharp, blurred or pixel-integrated dots of any round or square shape are, so every
+//!   harmonic informs the
 //!   offsets as well as the slopes — square dots carry ~80 % more position information in
 //!   their harmonics than in the fundamentals. An asymmetric dot (coma, oblique light) moves
 //!   the centre this model reports, a constant offset for a given optics (0.05 px on the
@@ -43,7 +44,7 @@
 //!   error is in every cell alike and smooth model error (vignetting) in neighbouring ones.
 //!   The biweight's cut-off is `c = max(4.685·σ, 2B)`, `σ` = 1.4826 × the median absolute
 //!   residual (95 % efficiency on Gaussian noise), at least twice the fundamental's amplitude
-//!   `B` ([`MIN_CUTOFF`]), so that only gross departures count as outliers on clean images.
+//!   `B` (`MIN_CUTOFF`), so that only gross departures count as outliers on clean images.
 //!   The first iteration is not weighted; the first two set the weights from their
 //!   residuals, and later ones too while their steps stay large (a start spoiled by dust over
 //!   the window, or an unweighted step pulled by a blob darker than the dots: weights judged on
@@ -428,7 +429,7 @@ pub struct FieldFit {
     pub inlier_fraction: f64,
     /// Whole cells (one period around a drawn dot, clear of the layout's other features) whose
     /// robust weight is below 1: dust, hair, scratches over the field. Noise alone never
-    /// lowers a cell's weight ([`CELL_FULL`]).
+    /// lowers a cell's weight (twice the median of the cells around it).
     pub spoiled_cells: usize,
     /// Pixels with a non-zero layout weight.
     pub pixels: usize,
@@ -468,7 +469,7 @@ impl FieldFit {
     ///   same dust or hair may bias it while its σ, a noise figure, cannot show it;
     /// * otherwise the estimator with the smaller predicted position error is kept: the
     ///   window's σ, and the field's σ scaled by its residual over the white noise. The field
-    ///   model stops at order-[`MAX_ORDER`] harmonics: on nearly noise-free images of sharp
+    ///   model stops at order-5 harmonics: on nearly noise-free images of sharp
     ///   dots many pixels wide its residual is model error, which the window's band-pass never
     ///   sees, and the window wins.
     pub fn beats_window(&self, window_phase_std: [f64; 2], x: f64, y: f64) -> bool {
@@ -1071,7 +1072,7 @@ impl Iterator for FieldPixels<'_> {
 /// Refines `start` (image frame, docs/design.md#frames) on every pixel around the drawn dots
 /// of `mask`, robustly (see the module doc). The covariance counts the white noise alone:
 /// the smaller of the residual's scale and the noise measured apart from the model (lattice
-/// second differences, [`super::noise`]). `None` when the field has fewer than 16 drawn dots,
+/// second differences, `phase::noise`). `None` when the field has fewer than 16 drawn dots,
 /// the normal equations are singular, the iterations do not converge, or the planes would
 /// move by half a period somewhere in the field (the start was not this grid's).
 pub fn fit_dot_field(
