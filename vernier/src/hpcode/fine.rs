@@ -408,8 +408,8 @@ mod tests {
     #[test]
     fn tilted_marker_finders_give_its_perspective() {
         // W = 37 (legs of 15 periods), the centre a node, seen under a homography whose depth
-        // changes by 12 % across the marker: the finders' legs are 0.5 period off a linear
-        // grid, beyond what rounding accepts.
+        // changes by 8 % across the marker: the legs are 14.7 and 15.6 periods on the planes'
+        // linear grid, with cross terms of 0.54 and 0.36 period, beyond what rounding accepts.
         let alpha: f64 = 0.4;
         let window_center = Vector2::new(300.0, 200.0);
         let node = Vector2::new(3.0, -4.0);
