@@ -109,14 +109,20 @@ fn every_hp_marker_read_right(seeds: &[u64]) -> Tally {
     every_marker_read_right(&generator, seeds)
 }
 
-/// [`every_hp_marker_read_right`] with the scenes of `generator`.
-fn every_marker_read_right(generator: &Generator, seeds: &[u64]) -> Tally {
+/// The HP code scenes of `seeds` drawn by `generator`, run: their report and HP tally.
+fn hp_scenes(generator: &Generator, seeds: &[u64]) -> (Report, Tally) {
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut report = Report::default();
     run(generator, seeds, threads, &mut |o| report.add(&o))
         .unwrap_or_else(|e| panic!("scene generation failed: {e}"));
     let t = report.family_total(Family::HpCode);
     println!("{}", report.markdown(Family::HpCode));
+    (report, t)
+}
+
+/// [`every_hp_marker_read_right`] with the scenes of `generator`.
+fn every_marker_read_right(generator: &Generator, seeds: &[u64]) -> Tally {
+    let (report, t) = hp_scenes(generator, seeds);
     assert!(t.markers > 0);
     assert_eq!(
         (t.found, t.wrong_id, t.false_markers),
@@ -152,18 +158,8 @@ fn steeply_tilted_markers_are_read_right() {
 #[test]
 fn a_hidden_dot_corner_never_confirms_a_reflected_reading() {
     let generator = Generator::from_env().unwrap_or_else(|e| panic!("{e}"));
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let mut report = Report::default();
-    run(&generator, &[62907], threads, &mut |o| report.add(&o))
-        .unwrap_or_else(|e| panic!("scene generation failed: {e}"));
-    let t = report.family_total(Family::HpCode);
-    assert_eq!(
-        (t.wrong_id, t.false_markers),
-        (0, 0),
-        "{}",
-        report.markdown(Family::HpCode)
-    );
-    assert_eq!(t.found, 1, "{}", report.markdown(Family::HpCode));
+    let (_, t) = hp_scenes(&generator, &[62907]);
+    assert_eq!((t.found, t.wrong_id, t.false_markers), (1, 0, 0));
 }
 
 /// HP code scenes whose fine fit or ID once went wrong while the marker was "found": a dust
