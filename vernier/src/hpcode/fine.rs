@@ -260,7 +260,7 @@ fn finder_view(finders: &[Vector2<f64>; 3]) -> Option<FinderView> {
     let [corner, right, bottom] = *finders;
     let legs = (0.5 * ((right - corner).x + (bottom - corner).y)).round();
     let flat = untilted_view(finders, legs);
-    let tilted = tilted_view(finders, legs).filter(|t| t.misfit < TILT_GAIN * flat.misfit);
+    let tilted = tilted_view(finders, &flat).filter(|t| t.misfit < TILT_GAIN * flat.misfit);
     log::trace!("finders' view: {flat:?}, tilted {tilted:?}");
     match tilted.unwrap_or(flat) {
         v if legs >= MIN_LEGS && v.misfit <= MAX_LEG_ERROR => Some(v),
@@ -301,11 +301,11 @@ fn untilted_view(finders: &[Vector2<f64>; 3], legs: f64) -> FinderView {
     }
 }
 
-/// [`finder_view`] of a tilted marker: Gauss–Newton on `(c, p)` from the untilted view;
+/// [`finder_view`] of a tilted marker: Gauss–Newton on `(c, p)` from the untilted view `flat`;
 /// `None` when singular or beyond [`MAX_DEPTH_CHANGE`].
-fn tilted_view(finders: &[Vector2<f64>; 3], legs: f64) -> Option<FinderView> {
+fn tilted_view(finders: &[Vector2<f64>; 3], flat: &FinderView) -> Option<FinderView> {
+    let (legs, start) = (flat.legs, flat.center);
     let u = finder_coordinates(legs);
-    let start = untilted_view(finders, legs).center;
     // Unknowns (c₁, c₂, p₁, p₂).
     let mut x = nalgebra::Vector4::new(start.x, start.y, 0.0, 0.0);
     let places = |x: &nalgebra::Vector4<f64>| {
