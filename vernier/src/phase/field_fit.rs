@@ -68,7 +68,7 @@
 //! CPU has it. A fit whose steps stop contracting once the weights are frozen is given up at
 //! once rather than run to the iteration limit (it would be refused there).
 
-use super::noise::{white_noise_variance, NoisePlan};
+use super::noise::{quantisation_variance, white_noise_variance, NoisePlan};
 use super::normal_equations::NormalEquations;
 use super::plane::{wrap_to_pi, PhasePlane};
 use super::MIN_NOISE_STD;
@@ -111,8 +111,13 @@ const ROBUST_ITERATIONS: usize = 2;
 /// Most iterations.
 const MAX_ITERATIONS: usize = 10;
 /// Converged when no plane moves by more than this anywhere in the field, radians (1.6e-6 of
-/// a period; the iterations contract by ~5×, so the remaining error is a quarter of that).
+/// a period; the iterations contract by 10–100× once the weights are frozen, so the error left
+/// is a tenth of that or less) …
 const CONVERGED: f64 = 1e-5;
+/// … or, once two steps of the frozen problem show its contraction `q`, when the steps still to
+/// come sum to less than this fraction of [`CONVERGED`] (`s·q/(1 − q)` after a step `s`): the
+/// same error left, without the sweep that would only confirm it.
+const CONVERGED_TAIL: f64 = 0.1;
 /// Once the weights are frozen, an iteration whose largest plane step still exceeds
 /// [`GIVE_UP_STEP`] must be at most this fraction of the previous one (Gauss–Newton on a
 /// fixed problem contracts 10–100× per iteration on real and rendered fields); otherwise the
@@ -1103,6 +1108,8 @@ pub fn fit_dot_field(
     };
     let ((left, width), (top, height)) = (aligned(&field.cols), aligned(&field.rows));
     let mut sub = image.crop(left, top, width, height).ok()?;
+    // The rounding to the input's levels, per binned pixel (the mean of f² rounded values).
+    let rounding = quantisation_variance(sub.pixels()) / (factor * factor) as f64;
     let mut scale = 1;
     while scale < factor {
         let (rb, cb) = (sub.height() / 2, sub.width() / 2);
@@ -1129,7 +1136,8 @@ pub fn fit_dot_field(
     // model stops short of the dots' detail (sharp dots many pixels wide), the residual is
     // static model error, which does not scatter the result from frame to frame.
     let mut plan = NoisePlan::new(sub.height(), sub.width());
-    let white = white_noise_variance(sub.pixels(), None, &start_sub, &mut plan);
+    let white =
+        white_noise_variance(sub.pixels(), None, &start_sub, &mut plan).map(|v| v.max(rounding));
     let mut fit = fit_dot_field_dispatch(&sub, start_sub, mask, white)?;
     fit.planes = fit.planes.map(|p| {
         let (a, b) = (p.a / f, p.b / f);
@@ -1261,8 +1269,16 @@ fn fit_dot_field_generic(
             return None;
         }
         slow_before = slow;
+        // The steps still to come: the geometric tail of the frozen problem's contraction.
+        let contraction = largest / previous_largest;
+        let tail = match frozen_at {
+            Some(f) if iteration > f && contraction < 1.0 => {
+                largest * contraction / (1.0 - contraction)
+            }
+            _ => f64::INFINITY,
+        };
         previous_largest = largest;
-        if frozen_at.is_some() && largest < CONVERGED {
+        if frozen_at.is_some() && (largest < CONVERGED || tail < CONVERGED_TAIL * CONVERGED) {
             return Some(FieldFit {
                 planes: model.planes,
                 amplitudes: [model.linear[3].abs(), model.linear[6].abs()],

@@ -456,7 +456,7 @@ impl PhaseEngine {
                 cache.refine(),
                 params.refine_iterations,
             );
-            let noise = noise::white_noise_variance(image.pixels(), None, &r.planes, cache.noise());
+            let noise = noise::noise_variance(image.pixels(), None, &r.planes, cache.noise());
             Refinement::from_fit(&r, noise)
         } else {
             Refinement {
@@ -528,8 +528,7 @@ impl PhaseEngine {
                 "all refinement weights are zero".into(),
             ));
         }
-        let noise =
-            noise::white_noise_variance(image.pixels(), Some(weights), &r.planes, cache.noise());
+        let noise = noise::noise_variance(image.pixels(), Some(weights), &r.planes, cache.noise());
         Ok(Refinement::from_fit(&r, noise))
     }
 

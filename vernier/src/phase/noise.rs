@@ -47,6 +47,39 @@ const MIN_SAMPLES: usize = 64;
 /// `z²` values.
 const LOWER_HALF_SECOND_MOMENT: f64 = 0.142_652;
 
+/// Most samples looked at for the image's quantisation step ([`quantisation_variance`]).
+const QUANTISATION_SAMPLES: usize = 4096;
+
+/// Variance of the rounding of `pixels` to their sample levels, intensity units²: `q²/12` for
+/// the smallest gap `q` between distinct values among up to 4096 evenly spread samples (1/255
+/// in 8-bit data, JPEG included; ~0 in renders and float images: no floor). Rounding is white
+/// noise of that variance wherever the pattern spans several levels, but second differences
+/// of rounded values are mostly exactly 0 on a clean image, so [`white_noise_variance`] (the
+/// lower half of their squares) misses it: a clean 8-bit image of low contrast would report a
+/// precision hundreds of times finer than its rounding allows. The callers take the larger of
+/// the two. Missing levels (a pattern spanning a few levels with gaps) only make `q` larger,
+/// the floor more cautious.
+pub(crate) fn quantisation_variance(pixels: &[f32]) -> f64 {
+    let stride = pixels.len().div_ceil(QUANTISATION_SAMPLES).max(1);
+    let mut values: Vec<f32> = pixels
+        .iter()
+        .step_by(stride)
+        .copied()
+        .filter(|v| v.is_finite())
+        .collect();
+    values.sort_unstable_by(f32::total_cmp);
+    values.dedup();
+    let gap = values
+        .windows(2)
+        .map(|w| w[1] as f64 - w[0] as f64)
+        .fold(f64::INFINITY, f64::min);
+    if gap.is_finite() {
+        gap * gap / 12.0
+    } else {
+        0.0
+    }
+}
+
 /// Sample positions of the noise estimate for one image size.
 pub(crate) struct NoisePlan {
     rows: usize,
@@ -138,6 +171,17 @@ pub(crate) fn lattice_shift(planes: &[PhasePlane; 2], max_shift: i64) -> Option<
     best.map(|(d, error, _)| (d, error))
 }
 
+/// [`white_noise_variance`], at least the rounding's [`quantisation_variance`] of `pixels`.
+pub(crate) fn noise_variance(
+    pixels: &[f32],
+    weights: Option<&[f32]>,
+    planes: &[PhasePlane; 2],
+    plan: &mut NoisePlan,
+) -> Option<f64> {
+    white_noise_variance(pixels, weights, planes, plan)
+        .map(|v| v.max(quantisation_variance(pixels)))
+}
+
 /// Robust estimate of the white-noise variance of `pixels` (row-major, the plan's size), in
 /// intensity units², from second differences along a lattice vector of `planes` (module
 /// documentation). `weights` (same size, ≥ 0), when given, exclude the pixels of weight 0 as in
@@ -226,6 +270,28 @@ mod tests {
                 c: -1.0,
             },
         ]
+    }
+
+    #[test]
+    fn quantisation_variance_is_the_rounding_of_the_sample_levels() {
+        // A smooth ramp of values rounded to 8 and 12 bits, and the same unrounded.
+        let ramp: Vec<f64> = (0..200_000)
+            .map(|i| 0.3 + 0.2 * (i as f64 * 1e-4).sin())
+            .collect();
+        for bits in [8u32, 12] {
+            let levels = ((1u32 << bits) - 1) as f64;
+            let rounded: Vec<f32> = ramp
+                .iter()
+                .map(|v| ((v * levels).round() / levels) as f32)
+                .collect();
+            let expected = 1.0 / (12.0 * levels * levels);
+            let got = quantisation_variance(&rounded);
+            assert!((got / expected - 1.0).abs() < 1e-4, "{bits} bits: {got:e}");
+        }
+        let unrounded: Vec<f32> = ramp.iter().map(|&v| v as f32).collect();
+        assert!(quantisation_variance(&unrounded) < 1e-12);
+        assert_eq!(quantisation_variance(&[0.5; 10]), 0.0);
+        assert_eq!(quantisation_variance(&[]), 0.0);
     }
 
     #[test]
