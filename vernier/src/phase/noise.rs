@@ -52,7 +52,8 @@ const QUANTISATION_SAMPLES: usize = 4096;
 
 /// Variance of the rounding of `pixels` to their sample levels, intensity units²: `q²/12` for
 /// the smallest gap `q` between distinct values among up to 4096 evenly spread samples (1/255
-/// in 8-bit data, JPEG included; ~0 in renders and float images: no floor). Rounding is white
+/// in 8-bit grey data, grey JPEG included; ~0 in renders, float images, colour converted to
+/// grey and apodised windows, whose values are no longer on a grid: no floor). Rounding is white
 /// noise of that variance wherever the pattern spans several levels, but second differences
 /// of rounded values are mostly exactly 0 on a clean image, so [`white_noise_variance`] (the
 /// lower half of their squares) misses it: a clean 8-bit image of low contrast would report a
