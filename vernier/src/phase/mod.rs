@@ -34,6 +34,7 @@ use crate::error::{Error, Result};
 use crate::grey_image::GreyImage;
 use crate::lru::Lru;
 use bandpass::BandpassPlan;
+pub(crate) use noise::quantisation_variance_of;
 use noise::NoisePlan;
 use refine::RefinePlan;
 use spectrum::SpectrumPlan;
@@ -78,6 +79,11 @@ pub struct PhaseParams {
     pub spectrum_binning: bool,
     /// Keep the decimated phase maps in the result (for display). Default false.
     pub keep_phase_maps: bool,
+    /// Least white-noise variance of the analysed image, intensity units²: the rounding of its
+    /// source when the analysed image is a scaled copy whose own values no longer show the
+    /// source's levels (the stamp's apodised windows, docs/design.md#uncertainty). Default 0:
+    /// the rounding is read from the analysed image itself.
+    pub rounding_variance: f64,
 }
 
 /// Where a coarse step that already sees the grid (e.g. the HP code finders) expects the two
@@ -110,6 +116,7 @@ impl Default for PhaseParams {
             full_resolution_bandpass: false,
             spectrum_binning: true,
             keep_phase_maps: false,
+            rounding_variance: 0.0,
         }
     }
 }
@@ -151,6 +158,12 @@ impl PhaseParams {
             return Err(Error::parameter(
                 "crop_factor",
                 format!("must be in [0, 1), got {}", self.crop_factor),
+            ));
+        }
+        if !(self.rounding_variance.is_finite() && self.rounding_variance >= 0.0) {
+            return Err(Error::parameter(
+                "rounding_variance",
+                format!("must be ≥ 0, got {}", self.rounding_variance),
             ));
         }
         Ok(())
@@ -456,7 +469,8 @@ impl PhaseEngine {
                 cache.refine(),
                 params.refine_iterations,
             );
-            let noise = noise::noise_variance(image.pixels(), None, &r.planes, cache.noise());
+            let noise = noise::noise_variance(image.pixels(), None, &r.planes, cache.noise())
+                .map(|v| v.max(params.rounding_variance));
             Refinement::from_fit(&r, noise)
         } else {
             Refinement {

@@ -53,7 +53,8 @@ const QUANTISATION_SAMPLES: usize = 4096;
 /// Variance of the rounding of `pixels` to their sample levels, intensity units²: `q²/12` for
 /// the smallest gap `q` between distinct values among up to 4096 evenly spread samples (1/255
 /// in 8-bit grey data, grey JPEG included; ~0 in renders, float images, colour converted to
-/// grey and apodised windows, whose values are no longer on a grid: no floor). Rounding is white
+/// grey and apodised windows, whose values are no longer on a grid: no floor, unless the
+/// caller knows the source's, `PhaseParams::rounding_variance`). Rounding is white
 /// noise of that variance wherever the pattern spans several levels, but second differences
 /// of rounded values are mostly exactly 0 on a clean image, so [`white_noise_variance`] (the
 /// lower half of their squares) misses it: a clean 8-bit image of low contrast would report a
@@ -62,12 +63,12 @@ const QUANTISATION_SAMPLES: usize = 4096;
 /// the floor more cautious.
 pub(crate) fn quantisation_variance(pixels: &[f32]) -> f64 {
     let stride = pixels.len().div_ceil(QUANTISATION_SAMPLES).max(1);
-    let mut values: Vec<f32> = pixels
-        .iter()
-        .step_by(stride)
-        .copied()
-        .filter(|v| v.is_finite())
-        .collect();
+    quantisation_variance_of(pixels.iter().step_by(stride).copied())
+}
+
+/// [`quantisation_variance`] of the given samples (all of them).
+pub(crate) fn quantisation_variance_of(samples: impl Iterator<Item = f32>) -> f64 {
+    let mut values: Vec<f32> = samples.filter(|v| v.is_finite()).collect();
     values.sort_unstable_by(f32::total_cmp);
     values.dedup();
     let gap = values

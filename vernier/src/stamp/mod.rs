@@ -546,13 +546,14 @@ impl StampDetector {
     }
 
     /// The `size` window of `image` centred on `center` as the phase engine gets it (bright
-    /// dots): its window-weighted mean removed, apodised, 0 outside the image.
+    /// dots): its window-weighted mean removed, apodised, 0 outside the image; with the
+    /// variance of the source's rounding there (intensity units²).
     fn window_image(
         &mut self,
         image: &GreyImage,
         center: (i64, i64),
         size: usize,
-    ) -> Result<GreyImage> {
+    ) -> Result<(GreyImage, f64)> {
         // The part of the window inside the image: window indices [lo, hi) on each axis, and
         // the image index of lo.
         let half = (size / 2) as i64;
@@ -600,7 +601,20 @@ impl StampDetector {
             }
         }
         let window = GreyImage::new(size, size, pixels)?;
-        Ok(window)
+        // The source's rounding, which the apodisation (each pixel scaled by its weight) hides
+        // from the window's own values; the weight is ~1 where the engine's sine-cubed weight
+        // lies, so the window keeps the source's Δ²/12 (docs/design.md#uncertainty). A 64 × 64
+        // sample of the region.
+        let (row_step, col_step) = ((r1 - r0).div_ceil(64).max(1), (c1 - c0).div_ceil(64).max(1));
+        let rounding =
+            crate::phase::quantisation_variance_of((r0..r1).step_by(row_step).flat_map(|r| {
+                let from = (src_r + r - r0) * w + src_c;
+                src[from..from + (c1 - c0)]
+                    .iter()
+                    .step_by(col_step)
+                    .copied()
+            }));
+        Ok((window, rounding))
     }
 
     /// The bright-dot phase analysis of the `size` window at `center`: one measured already in
@@ -627,8 +641,9 @@ impl StampDetector {
             }
             return Ok(Some(moved));
         }
-        let window = self.window_image(image, center, size)?;
+        let (window, rounding) = self.window_image(image, center, size)?;
         let mut params = self.params.phase.clone();
+        params.rounding_variance = params.rounding_variance.max(rounding);
         if let Some((lo, hi)) = periods {
             // Lobes only where the frame says the grid is: a hair, JPEG blocks or a clutter
             // grid in the window cannot stand in for it.
