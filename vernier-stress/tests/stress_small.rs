@@ -109,12 +109,18 @@ fn every_hp_marker_read_right(seeds: &[u64]) -> Tally {
     every_marker_read_right(&generator, seeds)
 }
 
-/// The HP code scenes of `seeds` drawn by `generator`, run: their report and HP tally.
-fn hp_scenes(generator: &Generator, seeds: &[u64]) -> (Report, Tally) {
+/// The scenes of `seeds` drawn by `generator`, run on every core: their report.
+fn run_scenes(generator: &Generator, seeds: &[u64]) -> Report {
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut report = Report::default();
     run(generator, seeds, threads, &mut |o| report.add(&o))
         .unwrap_or_else(|e| panic!("scene generation failed: {e}"));
+    report
+}
+
+/// The HP code scenes of `seeds` drawn by `generator`, run: their report and HP tally.
+fn hp_scenes(generator: &Generator, seeds: &[u64]) -> (Report, Tally) {
+    let report = run_scenes(generator, seeds);
     let t = report.family_total(Family::HpCode);
     println!("{}", report.markdown(Family::HpCode));
     (report, t)
@@ -190,12 +196,7 @@ fn gross_outliers_do_not_move_a_found_marker() {
 #[test]
 fn clean_8_bit_low_contrast_markers_report_an_honest_sigma() {
     let generator = Generator::from_env().unwrap_or_else(|e| panic!("{e}"));
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let mut report = Report::default();
-    run(&generator, &[54808, 55171], threads, &mut |o| {
-        report.add(&o)
-    })
-    .unwrap_or_else(|e| panic!("scene generation failed: {e}"));
+    let report = run_scenes(&generator, &[54808, 55171]);
     for family in [Family::HpCode, Family::Stamp] {
         let t = report.family_total(family);
         println!("{}", report.markdown(family));

@@ -34,7 +34,7 @@ use crate::error::{Error, Result};
 use crate::grey_image::GreyImage;
 use crate::lru::Lru;
 use bandpass::BandpassPlan;
-pub(crate) use noise::quantisation_variance_of;
+pub(crate) use noise::quantisation_variance_in;
 use noise::NoisePlan;
 use refine::RefinePlan;
 use spectrum::SpectrumPlan;
@@ -469,8 +469,13 @@ impl PhaseEngine {
                 cache.refine(),
                 params.refine_iterations,
             );
-            let noise = noise::noise_variance(image.pixels(), None, &r.planes, cache.noise())
-                .map(|v| v.max(params.rounding_variance));
+            let noise = noise::noise_variance(
+                image.pixels(),
+                None,
+                &r.planes,
+                cache.noise(),
+                params.rounding_variance,
+            );
             Refinement::from_fit(&r, noise)
         } else {
             Refinement {
@@ -542,7 +547,8 @@ impl PhaseEngine {
                 "all refinement weights are zero".into(),
             ));
         }
-        let noise = noise::noise_variance(image.pixels(), Some(weights), &r.planes, cache.noise());
+        let noise =
+            noise::noise_variance(image.pixels(), Some(weights), &r.planes, cache.noise(), 0.0);
         Ok(Refinement::from_fit(&r, noise))
     }
 

@@ -47,8 +47,11 @@ const MIN_SAMPLES: usize = 64;
 /// `z²` values.
 const LOWER_HALF_SECOND_MOMENT: f64 = 0.142_652;
 
-/// Most samples looked at for the image's quantisation step ([`quantisation_variance`]).
-const QUANTISATION_SAMPLES: usize = 4096;
+/// Samples per side of a region looked at for its quantisation step
+/// ([`quantisation_variance_in`]) …
+const QUANTISATION_SIDE: usize = 64;
+/// … and most samples looked at in all ([`quantisation_variance`]).
+const QUANTISATION_SAMPLES: usize = QUANTISATION_SIDE * QUANTISATION_SIDE;
 
 /// Variance of the rounding of `pixels` to their sample levels, intensity units²: `q²/12` for
 /// the smallest gap `q` between distinct values among up to 4096 evenly spread samples (1/255
@@ -66,8 +69,24 @@ pub(crate) fn quantisation_variance(pixels: &[f32]) -> f64 {
     quantisation_variance_of(pixels.iter().step_by(stride).copied())
 }
 
+/// [`quantisation_variance`] of the region `rows × cols` of a row-major image `width` pixels
+/// wide, from a grid of up to [`QUANTISATION_SIDE`] samples per side.
+pub(crate) fn quantisation_variance_in(
+    pixels: &[f32],
+    width: usize,
+    rows: std::ops::Range<usize>,
+    cols: std::ops::Range<usize>,
+) -> f64 {
+    let row_step = rows.len().div_ceil(QUANTISATION_SIDE).max(1);
+    let col_step = cols.len().div_ceil(QUANTISATION_SIDE).max(1);
+    quantisation_variance_of(rows.step_by(row_step).flat_map(|r| {
+        let line = pixels.get(r * width + cols.start..r * width + cols.end);
+        line.unwrap_or_default().iter().step_by(col_step).copied()
+    }))
+}
+
 /// [`quantisation_variance`] of the given samples (all of them).
-pub(crate) fn quantisation_variance_of(samples: impl Iterator<Item = f32>) -> f64 {
+fn quantisation_variance_of(samples: impl Iterator<Item = f32>) -> f64 {
     let mut values: Vec<f32> = samples.filter(|v| v.is_finite()).collect();
     values.sort_unstable_by(f32::total_cmp);
     values.dedup();
@@ -173,15 +192,18 @@ pub(crate) fn lattice_shift(planes: &[PhasePlane; 2], max_shift: i64) -> Option<
     best.map(|(d, error, _)| (d, error))
 }
 
-/// [`white_noise_variance`], at least the rounding's [`quantisation_variance`] of `pixels`.
+/// [`white_noise_variance`], at least the rounding's [`quantisation_variance`] of `pixels` and
+/// `known_rounding` (the source's, when `pixels` are a scaled copy that hides its levels; 0
+/// otherwise).
 pub(crate) fn noise_variance(
     pixels: &[f32],
     weights: Option<&[f32]>,
     planes: &[PhasePlane; 2],
     plan: &mut NoisePlan,
+    known_rounding: f64,
 ) -> Option<f64> {
     white_noise_variance(pixels, weights, planes, plan)
-        .map(|v| v.max(quantisation_variance(pixels)))
+        .map(|v| v.max(quantisation_variance(pixels)).max(known_rounding))
 }
 
 /// Robust estimate of the white-noise variance of `pixels` (row-major, the plan's size), in

@@ -603,17 +603,13 @@ impl StampDetector {
         let window = GreyImage::new(size, size, pixels)?;
         // The source's rounding, which the apodisation (each pixel scaled by its weight) hides
         // from the window's own values; the weight is ~1 where the engine's sine-cubed weight
-        // lies, so the window keeps the source's Δ²/12 (docs/design.md#uncertainty). A 64 × 64
-        // sample of the region.
-        let (row_step, col_step) = ((r1 - r0).div_ceil(64).max(1), (c1 - c0).div_ceil(64).max(1));
-        let rounding =
-            crate::phase::quantisation_variance_of((r0..r1).step_by(row_step).flat_map(|r| {
-                let from = (src_r + r - r0) * w + src_c;
-                src[from..from + (c1 - c0)]
-                    .iter()
-                    .step_by(col_step)
-                    .copied()
-            }));
+        // lies, so the window keeps the source's Δ²/12 (docs/design.md#uncertainty).
+        let rounding = crate::phase::quantisation_variance_in(
+            src,
+            w,
+            src_r..src_r + (r1 - r0),
+            src_c..src_c + (c1 - c0),
+        );
         Ok((window, rounding))
     }
 
