@@ -1,0 +1,83 @@
+//! Independent jobs of one frame (the markers' measurements) spread over threads, results in
+//! the jobs' order.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// The number of threads a `threads` setting asks for: 0 = every core the system offers.
+pub(crate) fn thread_count(threads: usize) -> usize {
+    match threads {
+        0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+        n => n,
+    }
+}
+
+/// `job(worker, k, &items[k])` for every item, each of the `workers` (one thread each; their
+/// per-thread state, such as a phase engine) taking the next item not yet taken, so that
+/// costly items spread over the threads wherever they sit in the list. The results come back
+/// in the items' order, the sequential result whatever the number of workers; `None` when a
+/// thread panicked.
+pub(crate) fn map_in_order<W, T, R>(
+    workers: &mut [W],
+    items: &[T],
+    job: impl Fn(&mut W, usize, &T) -> R + Sync,
+) -> Option<Vec<R>>
+where
+    W: Send,
+    T: Sync,
+    R: Send,
+{
+    let next = AtomicUsize::new(0);
+    // Takes items from the shared queue: (item index, result) pairs.
+    let take_and_run = |worker: &mut W| {
+        let mut done = Vec::new();
+        loop {
+            let k = next.fetch_add(1, Ordering::Relaxed);
+            let Some(item) = items.get(k) else {
+                return done;
+            };
+            done.push((k, job(worker, k, item)));
+        }
+    };
+    let mut results: Vec<(usize, R)> = match workers {
+        [] => return (items.is_empty()).then(Vec::new),
+        [only] => take_and_run(only),
+        _ => std::thread::scope(|s| {
+            let handles: Vec<_> = workers
+                .iter_mut()
+                .map(|worker| s.spawn(|| take_and_run(worker)))
+                .collect();
+            let mut all = Vec::with_capacity(items.len());
+            for handle in handles {
+                all.extend(handle.join().ok()?);
+            }
+            Some(all)
+        })?,
+    };
+    results.sort_by_key(|(k, _)| *k);
+    Some(results.into_iter().map(|(_, r)| r).collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn results_keep_the_items_order_whatever_the_workers() {
+        let items: Vec<u64> = (0..50).collect();
+        for n in 1..=4 {
+            let mut workers = vec![0usize; n];
+            let out = map_in_order(&mut workers, &items, |count, k, &v| {
+                *count += 1;
+                (k as u64, v * v)
+            })
+            .unwrap();
+            assert_eq!(out, items.iter().map(|&v| (v, v * v)).collect::<Vec<_>>());
+            assert_eq!(workers.iter().sum::<usize>(), items.len());
+        }
+        assert_eq!(map_in_order(&mut [(); 0], &items, |_, _, _| ()), None);
+        assert_eq!(
+            map_in_order(&mut [(); 0], &[0u8; 0], |_, _, _| ()),
+            Some(vec![])
+        );
+    }
+}
