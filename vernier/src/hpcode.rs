@@ -417,56 +417,23 @@ impl HpCodeDetector {
         image: &GreyImage,
         triples: &[FinderTriple],
     ) -> Result<Vec<HpCodeMarker>> {
-        let cores = match self.params.threads {
-            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
-            n => n,
-        };
-        let threads = cores.min(triples.len()).max(1);
+        let threads = crate::parallel::thread_count(self.params.threads)
+            .min(triples.len())
+            .max(1);
         while self.workers.len() < threads {
             self.workers.push(MarkerWorker::default());
         }
         let params = &self.params;
-        let next = std::sync::atomic::AtomicUsize::new(0);
-        // Measures triples from the shared queue: (triple index, result) pairs.
-        let take_and_measure = |worker: &mut MarkerWorker| {
-            let mut measure = Measure::new(params, worker);
-            let mut found = Vec::new();
-            loop {
-                let k = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                let Some(triple) = triples.get(k) else {
-                    return found;
-                };
-                found.push((k, measure.measure(image, triple)));
-            }
-        };
-        let mut results: Vec<(usize, Result<Option<HpCodeMarker>>)> = if threads == 1 {
-            take_and_measure(&mut self.workers[0])
-        } else {
-            std::thread::scope(|s| {
-                let handles: Vec<_> = self
-                    .workers
-                    .iter_mut()
-                    .take(threads)
-                    .map(|worker| s.spawn(|| take_and_measure(worker)))
-                    .collect();
-                handles
-                    .into_iter()
-                    .flat_map(|h| {
-                        h.join().unwrap_or_else(|_| {
-                            vec![(
-                                0,
-                                Err(Error::PatternNotFound(
-                                    "internal: a marker-measuring thread panicked".into(),
-                                )),
-                            )]
-                        })
-                    })
-                    .collect()
-            })
-        };
-        results.sort_by_key(|(k, _)| *k);
+        let results = crate::parallel::map_in_order(
+            &mut self.workers[..threads],
+            triples,
+            |worker, _, triple| Measure::new(params, worker).measure(image, triple),
+        )
+        .ok_or_else(|| {
+            Error::PatternNotFound("internal: a marker-measuring thread panicked".into())
+        })?;
         let mut markers = Vec::with_capacity(triples.len());
-        for (_, result) in results {
+        for result in results {
             markers.extend(result?);
         }
         Ok(markers)

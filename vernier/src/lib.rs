@@ -94,6 +94,7 @@ mod lru;
 pub mod megarena_sequence;
 mod order_stats;
 pub mod output;
+mod parallel;
 pub mod pattern_file;
 pub mod phase;
 pub use grey_image::{parse_polarity_setting, DecodeLimits, GreyImage, PixelFormat, Polarity};

@@ -252,6 +252,29 @@ fn several_stamps_in_one_render_with_duplicate_ids_are_all_reported() {
         assert!(wrap_angle(m.pose.alpha - alpha).abs() < 1e-5, "{m:?}");
         assert!(m.decode_confidence.unwrap() > 0.9);
     }
+    // The stamps' whole-field fits run one per thread: the same results on one thread.
+    let detect_with = |threads| {
+        let params = StampParams {
+            threads,
+            ..StampParams::new(period, bitmaps.clone())
+        };
+        StampDetector::new(params).unwrap().detect(&image).unwrap()
+    };
+    let summary = |found: &[StampDetection]| {
+        found
+            .iter()
+            .map(|d| (d.id, d.origin_px, d.pose.alpha, d.field.is_some()))
+            .collect::<Vec<_>>()
+    };
+    let one = summary(&detect_with(1));
+    assert_eq!(one.len(), 3);
+    assert!(
+        one.iter().all(|d| d.3),
+        "every stamp has its field fit: {one:?}"
+    );
+    for threads in [2, 3] {
+        assert_eq!(summary(&detect_with(threads)), one, "{threads} threads");
+    }
 }
 
 /// Detects `image` with `bitmaps` at `period`, mirrored markers allowed (the default) or not.

@@ -44,6 +44,7 @@ pub use quads::{Quad, QuadParams};
 use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
 use crate::layout::BitmapLayout;
+use crate::parallel;
 use crate::phase::{
     fit_dot_field, wrap_angle, FieldFit, NodeMask, PhaseAnalysis, PhaseEngine, PhaseParams,
     PhasePlane, MIN_IMAGE_SIDE,
@@ -120,6 +121,9 @@ pub struct StampParams {
     /// bitmap, dust and hair down-weighted. Default `true`; the window's planes give the pose
     /// when `false`.
     pub field_fit: bool,
+    /// Threads running the whole-field fits of a frame's stamps in parallel (they are
+    /// independent); 0 (default) = every core the system offers. Results do not depend on it.
+    pub threads: usize,
     /// Phase-engine settings.
     pub phase: PhaseParams,
 }
@@ -142,6 +146,7 @@ impl StampParams {
             max_frame_offset: 0.5,
             allow_mirrored: true,
             field_fit: true,
+            threads: 0,
             phase: PhaseParams::default(),
         }
     }
@@ -362,6 +367,20 @@ pub struct StampDetector {
 /// Apodisation windows kept (one per window size in use).
 const CACHED_WINDOWS: usize = 4;
 
+/// A marker read in its window (bitmap matched, frame consistent), before its whole-field fit.
+struct WindowReading {
+    found: Match,
+    /// The window's planes, frame of `origin`.
+    planes: [PhasePlane; 2],
+    /// The window's centre pixel, image coordinates.
+    origin: Vector2<f64>,
+    frame: Option<Quad>,
+    center: (i64, i64),
+    size: usize,
+    analysis: PhaseAnalysis,
+    polarity: Polarity,
+}
+
 impl StampDetector {
     /// A detector with `params` (validated).
     pub fn new(params: StampParams) -> Result<Self> {
@@ -426,22 +445,37 @@ impl StampDetector {
                 self.measure_full(&image).map(|d| vec![d])
             }
             _ => {
-                let mut found: Vec<StampDetection> = Vec::new();
+                let mut read: Vec<WindowReading> = Vec::new();
                 for candidate in self.candidates(image) {
                     // Outermost only: a candidate inside an accepted frame is part of it.
                     let c = candidate.quad.center();
-                    if found
+                    if read
                         .iter()
-                        .filter_map(|d| d.frame.as_ref())
+                        .filter_map(|r| r.frame.as_ref())
                         .any(|f| f.contains(c))
                     {
                         continue;
                     }
-                    if let Some(d) = self.measure_framed(image, candidate)? {
-                        found.push(d);
+                    if let Some(r) = self.read_framed(image, candidate)? {
+                        read.push(r);
                     }
                 }
-                Ok(found)
+                // The whole-field fits, the costly part, one stamp per thread.
+                let this = &*self;
+                let threads = parallel::thread_count(this.params.threads).min(read.len());
+                let mut workers = vec![(); threads.max(1)];
+                let fits =
+                    parallel::map_in_order(&mut workers, &read, |_, _, r| this.field_for(image, r))
+                        .ok_or_else(|| {
+                            Error::PatternNotFound(
+                                "internal: a stamp-measuring thread panicked".into(),
+                            )
+                        })?;
+                Ok(read
+                    .into_iter()
+                    .zip(fits)
+                    .filter_map(|(r, fit)| this.finish(image, r, fit))
+                    .collect())
             }
         }
     }
@@ -508,20 +542,21 @@ impl StampDetector {
         }
         self.measured.clear();
         for polarity in self.polarities() {
-            if let Some(d) = self.measure_window(image, center, size, None, polarity)? {
+            let reading = self.read_window(image, center, size, None, polarity)?;
+            if let Some(d) = reading.and_then(|r| self.measured(image, r)) {
                 return Ok(Some(d));
             }
         }
         Ok(None)
     }
 
-    /// A framed candidate: window at the frame centre, sized to the dot field, measured in the
+    /// A framed candidate: window at the frame centre, sized to the dot field, read in the
     /// candidate's polarity.
-    fn measure_framed(
+    fn read_framed(
         &mut self,
         image: &GreyImage,
         candidate: Candidate,
-    ) -> Result<Option<StampDetection>> {
+    ) -> Result<Option<WindowReading>> {
         let quad = candidate.quad;
         let c = quad.center();
         let center = (c.x.round() as i64, c.y.round() as i64);
@@ -542,7 +577,7 @@ impl StampDetector {
         if size < MIN_IMAGE_SIDE {
             return Ok(None);
         }
-        self.measure_window(image, center, size, Some(quad), candidate.polarity)
+        self.read_window(image, center, size, Some(quad), candidate.polarity)
     }
 
     /// The `size` window of `image` centred on `center` as the phase engine gets it (bright
@@ -664,16 +699,16 @@ impl StampDetector {
         }
     }
 
-    /// Phase, frame-size check, match, frame consistency and pose in a `size` window centred on
-    /// `center`, for markers of `polarity`.
-    fn measure_window(
+    /// Phase, frame-size check, match and frame consistency in a `size` window centred on
+    /// `center`, for markers of `polarity`: the marker read, before its whole-field fit.
+    fn read_window(
         &mut self,
         image: &GreyImage,
         center: (i64, i64),
         size: usize,
         frame: Option<Quad>,
         polarity: Polarity,
-    ) -> Result<Option<StampDetection>> {
+    ) -> Result<Option<WindowReading>> {
         let periods = frame.as_ref().map(|q| self.expected_periods(q));
         let Some(mut analysis) = self.analysis_at(image, center, size, periods)? else {
             return Ok(None);
@@ -770,38 +805,82 @@ impl StampDetector {
                 found.vote
             );
         }
+        Ok(Some(WindowReading {
+            found,
+            planes,
+            origin,
+            frame,
+            center,
+            size,
+            analysis,
+            polarity,
+        }))
+    }
+
+    /// The detection of a marker read in its window, whole-field fit included.
+    fn measured(&self, image: &GreyImage, reading: WindowReading) -> Option<StampDetection> {
+        let field = self.field_for(image, &reading);
+        self.finish(image, reading, field)
+    }
+
+    /// The whole-field fit of a marker read in its window, with its planes (frame of the
+    /// reading's origin), when it beats the window's (`None`: the window's planes stand).
+    fn field_for(
+        &self,
+        image: &GreyImage,
+        reading: &WindowReading,
+    ) -> Option<([PhasePlane; 2], FieldFit)> {
         let (icx, icy) = image.center();
         let at = Vector2::new(
-            (center.0 - icx as i64) as f64,
-            (center.1 - icy as i64) as f64,
+            (reading.center.0 - icx as i64) as f64,
+            (reading.center.1 - icy as i64) as f64,
         );
-        let field = self
-            .refine_on_field(image, &found, &planes, origin)
-            .filter(|(_, fit)| fit.beats_window(analysis.phase_std, at.x, at.y));
-        let planes = field.as_ref().map_or(planes, |(p, _)| *p);
-        Ok(self
-            .detection(found, &planes, origin, image, frame, center, size, analysis)
-            .map(|d| {
-                let (icx, icy) = image.center();
-                let at = d.origin_px - Vector2::new(icx as f64, icy as f64);
-                let (phase_std, yaw_std, field) = match field {
-                    Some((_, fit)) => {
-                        let mut s = fit.phase_std_at(at.x, at.y);
-                        if found.orientation.matrix()[0][0] == 0 {
-                            s.swap(0, 1); // pattern x runs along plane 2
-                        }
-                        (s, Some(fit.mean_direction_std()), Some(fit))
+        self.refine_on_field(image, &reading.found, &reading.planes, reading.origin)
+            .filter(|(_, fit)| fit.beats_window(reading.analysis.phase_std, at.x, at.y))
+    }
+
+    /// The detection of a marker read in its window, with the planes of its whole-field fit
+    /// when there is one.
+    fn finish(
+        &self,
+        image: &GreyImage,
+        reading: WindowReading,
+        field: Option<([PhasePlane; 2], FieldFit)>,
+    ) -> Option<StampDetection> {
+        let planes = field.as_ref().map_or(reading.planes, |(p, _)| *p);
+        let polarity = reading.polarity;
+        let found = reading.found;
+        self.detection(
+            found,
+            &planes,
+            reading.origin,
+            image,
+            reading.frame,
+            reading.center,
+            reading.size,
+            reading.analysis,
+        )
+        .map(|d| {
+            let (icx, icy) = image.center();
+            let at = d.origin_px - Vector2::new(icx as f64, icy as f64);
+            let (phase_std, yaw_std, field) = match field {
+                Some((_, fit)) => {
+                    let mut s = fit.phase_std_at(at.x, at.y);
+                    if found.orientation.matrix()[0][0] == 0 {
+                        s.swap(0, 1); // pattern x runs along plane 2
                     }
-                    None => (d.phase_std, None, None),
-                };
-                StampDetection {
-                    polarity,
-                    field,
-                    phase_std,
-                    yaw_std,
-                    ..d
+                    (s, Some(fit.mean_direction_std()), Some(fit))
                 }
-            }))
+                None => (d.phase_std, None, None),
+            };
+            StampDetection {
+                polarity,
+                field,
+                phase_std,
+                yaw_std,
+                ..d
+            }
+        })
     }
 
     /// The planes (frame of `origin`, as given) refined on the matched bitmap's whole dot
@@ -929,7 +1008,10 @@ impl StampDetector {
             coarse.origin_px.y.round() as i64,
         );
         // `image` is already bright-dot.
-        match self.measure_window(image, center, window, None, Polarity::BrightDots)? {
+        let fine = self
+            .read_window(image, center, window, None, Polarity::BrightDots)?
+            .and_then(|reading| self.measured(image, reading));
+        match fine {
             Some(fine) if fine.id == coarse.id && fine.mirrored == coarse.mirrored => {
                 Ok(StampDetection {
                     polarity: coarse.polarity,
