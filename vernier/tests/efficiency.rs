@@ -506,8 +506,9 @@ fn uncertainty_counts_the_rounding_of_clean_8_bit_images() {
     // mostly exactly 0 and the predicted σ came out ~400 times below the error (stress suite,
     // low contrast). The floor is the rounding's white part: on a smooth image the rounding
     // error also runs in bands along the grey-level contours, correlated over neighbouring
-    // pixels, which the fit averages less well, so the spread is up to ~2× the floor (HP 0.60,
-    // stamp 1.18 measured here). 60 renders at random sub-pixel poses: ±9 % statistical error
+    // pixels, which the fit averages less well, so the spread is up to ~2× the floor (HP 0.53,
+    // stamp 1.18 measured here; the HP code's was 0.60 while its harmonics were always tied:
+    // the correlated rounding makes some renders keep free phases). 60 renders at random sub-pixel poses: ±9 % statistical error
     // on each ratio. (The stamp's apodised window, which takes the floor from its source, is
     // checked on stress scene 55171: vernier-stress/tests/stress_small.rs.)
     let mut failures = Vec::new();

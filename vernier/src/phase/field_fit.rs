@@ -1261,9 +1261,8 @@ fn fit_dot_field_generic(
         Some(shift) => {
             let mut tied = model.clone();
             tied.tie(shift);
-            run.add_shift(shift.map(f64::abs));
             let settled = run
-                .check_shift()
+                .add_shift(shift.map(f64::abs))
                 .ok_or(Stall::Failed)
                 .and_then(|()| converge(image, &field, mask, &mut tied, white, &mut run));
             match settled {
@@ -1312,15 +1311,12 @@ enum Stall {
 }
 
 impl Run {
-    fn add_shift(&mut self, moved: [f64; 2]) {
+    /// Adds a move of each plane (radians); `None` (the fit refused) once a plane has moved by
+    /// [`MAX_CORRECTION`] in all, or a move was not a number.
+    fn add_shift(&mut self, moved: [f64; 2]) -> Option<()> {
         for (total, m) in self.total_shift.iter_mut().zip(moved) {
             *total += m;
         }
-    }
-
-    /// `None` (the fit refused) once a plane has moved by [`MAX_CORRECTION`] in all, or a step
-    /// was not a number.
-    fn check_shift(&self) -> Option<()> {
         let refused = self
             .total_shift
             .iter()
@@ -1372,8 +1368,7 @@ fn converge(
             moved[l] = d[0].abs() + d[1].abs() + d[2].abs();
             largest = largest.max(moved[l]);
         }
-        run.add_shift(moved);
-        run.check_shift().ok_or(Stall::Failed)?;
+        run.add_shift(moved).ok_or(Stall::Failed)?;
         log::trace!(
             "whole-field fit iteration {iteration} ({} harmonics): step {largest:.1e} rad, \
              residual σ {:.2e}, {:.1} % inliers",
@@ -1395,9 +1390,7 @@ fn converge(
         // still be refused, so it is given up at once: a large step that does not contract,
         // or a small one that does not contract twice running (one slow iteration is a weakly
         // determined harmonic settling).
-        let measured = stage_iteration > 1;
-        let slow = measured
-            && run.frozen_at.is_some_and(|f| iteration > f + 1)
+        let slow = run.frozen_at.is_some_and(|f| iteration > f + 1)
             && largest > MIN_CONTRACTION * previous_largest
             && largest >= CONVERGED;
         if slow && (largest > GIVE_UP_STEP || slow_before) {
@@ -1407,7 +1400,9 @@ fn converge(
             return Err(Stall::Failed);
         }
         slow_before = slow;
-        // The steps still to come: the geometric tail of the frozen problem's contraction.
+        // The steps still to come: the geometric tail of the frozen problem's contraction
+        // (which needs a previous step of this stage).
+        let measured = previous_largest.is_finite();
         let contraction = largest / previous_largest;
         let tail = match run.frozen_at {
             Some(f) if measured && iteration > f && contraction < 1.0 => {
