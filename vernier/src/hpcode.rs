@@ -92,8 +92,11 @@ pub struct HpCodeParams {
     /// 6 noise standard deviations (measured in the quietest blocks), at least 0.015.
     pub min_contrast: Option<f64>,
     /// Markers whose ID is read with a confidence below this are dropped (`[0, 1]`, the
-    /// smallest margin of an ID dot to the present/absent threshold in half contrasts).
-    /// Default 0.2 (a dot level 10 % of the contrast away from the threshold).
+    /// smallest margin of an ID or left-column dot, `marker_id::bit_margin`: a present dot's
+    /// height above the present/absent threshold in half contrasts; a missing dot's depth
+    /// below the middle of the lower half, in quarter contrasts, since a hidden present dot
+    /// may sit anywhere below the threshold). Default 0.2: a present dot 10 % of the contrast
+    /// above the threshold, a missing one 30 % below it.
     pub min_id_confidence: f64,
     /// Phase-engine settings used on each window.
     pub phase: PhaseParams,
@@ -221,8 +224,8 @@ pub struct HpCodeMarker {
     pub polarity: Polarity,
     /// The marker is seen mirrored (from its back side): `pose.gamma = −π`.
     pub mirrored: bool,
-    /// ID confidence in `[0, 1]`: the smallest margin of an ID (or left column) dot to the
-    /// present/absent threshold, in units of half the dot contrast.
+    /// ID confidence in `[0, 1]`: the smallest margin of an ID (or left column) dot
+    /// ([`HpCodeParams::min_id_confidence`] says how each dot's margin is measured).
     pub id_confidence: f64,
     /// The three finders, `right`/`bottom` as in the pattern (after mirror resolution).
     pub finders: FinderTriple,

@@ -376,6 +376,38 @@ fn real_stamp1_gives_one_stamp() {
     );
 }
 
+/// Both real stamp images made worse in the ways a lab makes images worse (the degradations
+/// of the HP code images, `common::DEGRADATIONS`), with the bitmaps a user gives: the stamps
+/// found and the IDs that are not in the image, per degradation, printed as a table. No
+/// degradation may give a wrong ID; the mild ones must keep every stamp.
+#[test]
+fn real_stamps_made_worse_never_give_a_wrong_id() {
+    let cases: [(&str, &[&str], &[u64]); 2] = [
+        (
+            "stamp/stampPatternImage_15um.jpg",
+            &["stampD", "stampG"],
+            &[0, 1],
+        ),
+        ("stamp/stamp1.png", &STAMPS, &[0]),
+    ];
+    let images: Vec<(common::RealImage, GreyImage)> = cases
+        .iter()
+        .map(|&(file, _, ids)| {
+            let real = common::RealImage {
+                file,
+                ids,
+                required: ids.len(),
+            };
+            (real, open(file))
+        })
+        .collect();
+    let failures = common::degraded_views(&images, |i, view| {
+        let found = detect_real(view, cases[i].1, 15.5, true);
+        found.iter().map(|d| d.id as u64).collect()
+    });
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
 /// A 90° rotation or a flip of an image, acting on pixel positions and directions.
 #[derive(Clone, Copy, Debug)]
 enum Transform {

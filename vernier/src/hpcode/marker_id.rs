@@ -56,8 +56,7 @@ impl DotGrid {
 pub(crate) struct EdgeBits {
     /// Bit `k` = dot absent, `k = 0` next to the far finder.
     pub bits: Vec<bool>,
-    /// Smallest distance of a dot's level to the threshold, in units of half the contrast
-    /// (1 = perfectly clean, 0 = undecidable), clamped to `[0, 1]`.
+    /// Smallest [`bit_margin`] of the edge's dots (1 = perfectly clean, 0 = undecidable).
     pub margin: f64,
     /// Smallest signed distance of a dot's level above the threshold, half contrasts: > 0
     /// when every dot of the edge is present, the more so the larger.
@@ -193,10 +192,7 @@ fn read_edge(
     log::trace!("edge (transposed {transposed}) dot margins {signed:.2?}");
     // levels[i] is dot column 4 + i; bit k is dot column n − 5 − k.
     let bits: Vec<bool> = signed.iter().rev().map(|&s| s < 0.0).collect();
-    let margin = signed
-        .iter()
-        .map(|s| s.abs().min(1.0))
-        .fold(1.0f64, f64::min);
+    let margin = signed.iter().map(|&s| bit_margin(s)).fold(1.0f64, f64::min);
     let mut sorted = signed.clone();
     sorted.sort_by(f64::total_cmp);
     Some(EdgeBits {
@@ -205,6 +201,23 @@ fn read_edge(
         completeness: sorted.first().copied().unwrap_or(f64::INFINITY),
         completeness_but_one: sorted.get(1).copied().unwrap_or(f64::INFINITY),
     })
+}
+
+/// How clearly a dot of signed level `s` (half contrasts from the threshold: +1 a present
+/// dot's level, −1 the background's) reads as what it reads, in `[0, 1]`. Occluders that hide
+/// material (a dark hair or dust over a bright dot, bright residue over a dark one; the usual
+/// kind) put a present dot anywhere between the two levels, never a missing one above the
+/// background, so the two readings do not weigh the same:
+///
+/// * present (`s ≥ 0`): `s`, its distance above the threshold — a missing dot does not get
+///   there;
+/// * missing (`s < 0`): `−2s − 1`, its distance below the middle of the lower band (`s =
+///   −½`) in units of that half band. A dot halfway down to the background may be a present
+///   dot under a hair (`code22.tif`) or at a cut edge (`code21.jpg`); read as missing, it
+///   would give another marker's ID.
+fn bit_margin(s: f64) -> f64 {
+    let margin = if s >= 0.0 { s } else { -2.0 * s - 1.0 };
+    margin.clamp(0.0, 1.0)
 }
 
 /// Largest local shift searched for a reference dot, periods along each axis.
@@ -568,6 +581,45 @@ mod tests {
             assert!(r.confidence > 0.5, "{r:?}");
             let r = read_id(&image.inverted(), Polarity::DarkDots, &grid).unwrap();
             assert_eq!(r.id, id);
+        }
+    }
+
+    /// `image` with the dot of `grid` at `(r, c)` dimmed towards the background by `hidden`
+    /// (0: untouched, 1: gone), as a hair or a dust grain over it would.
+    fn dim_dot(image: &GreyImage, grid: &DotGrid, (r, c): (f64, f64), hidden: f32) -> GreyImage {
+        let (w, h) = (image.width(), image.height());
+        let background = image.bilinear(grid.at(r + 0.5, c + 0.5).x, grid.at(r + 0.5, c + 0.5).y);
+        let background = background.unwrap();
+        let center = grid.at(r, c);
+        let radius = 0.45 * grid.step_x.norm();
+        let mut pixels = image.pixels().to_vec();
+        for (i, v) in pixels.iter_mut().enumerate() {
+            let p = Vector2::new((i % w) as f64, (i / w) as f64);
+            if (p - center).norm() < radius {
+                *v += hidden * (background - *v);
+            }
+        }
+        GreyImage::new(w, h, pixels).unwrap()
+    }
+
+    #[test]
+    fn a_present_dot_half_hidden_never_reads_as_missing() {
+        // ID 0: every dot present. One dot of the left column (the complete edge) and one of
+        // the ID row dimmed by a hair: at 30 % of the contrast left (below the threshold) the
+        // marker would read mirrored with another ID or with a bit set; it must be refused
+        // instead. At 70 % left (above the threshold) the dot still reads present.
+        let layout = HpCodeLayout::from_code_size(10.0, 33).unwrap();
+        let pose = Pose::planar(1.0, 2.0, -0.3, 1.0);
+        let image = render(&layout, &pose, &RenderOptions::new(260, 240)).unwrap();
+        let grid = grid_for(&pose, 10.0, 17, &image);
+        for dot in [(8.0, 0.0), (0.0, 7.0)] {
+            let hidden = dim_dot(&image, &grid, dot, 0.7);
+            let r = read_id(&hidden, Polarity::BrightDots, &grid).unwrap();
+            assert!(r.confidence < 0.2, "dot {dot:?} 70 % hidden: {r:?}");
+            let dimmed = dim_dot(&image, &grid, dot, 0.3);
+            let r = read_id(&dimmed, Polarity::BrightDots, &grid).unwrap();
+            assert_eq!((r.id, r.mirrored), (0, false), "dot {dot:?} 30 % hidden");
+            assert!(r.confidence >= 0.2, "dot {dot:?} 30 % hidden: {r:?}");
         }
     }
 }

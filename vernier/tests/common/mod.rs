@@ -79,3 +79,226 @@ pub fn hp_detector(period: f64, code_size: usize) -> Detector {
     };
     Detector::new(settings.to_config().expect("HP settings")).expect("HP detector")
 }
+
+/// `image` with every level mapped through `f` (`[0, 1]` scale: gamma, contrast, inversion).
+pub fn map_levels(image: &GreyImage, mut f: impl FnMut(f32) -> f32) -> GreyImage {
+    let pixels = image.pixels().iter().map(|&v| f(v)).collect();
+    GreyImage::new(image.width(), image.height(), pixels).expect("mapped image")
+}
+
+/// `image` times a gain field `gain(x, y)` of the pixel's fractional position in the image
+/// (`[0, 1]²`): illumination gradients, vignetting.
+pub fn illuminated(image: &GreyImage, gain: impl Fn(f64, f64) -> f64) -> GreyImage {
+    let (w, h) = (image.width(), image.height());
+    let pixels = image
+        .pixels()
+        .iter()
+        .enumerate()
+        .map(|(i, &v)| v * gain((i % w) as f64 / w as f64, (i / w) as f64 / h as f64) as f32)
+        .collect();
+    GreyImage::new(w, h, pixels).expect("illuminated image")
+}
+
+/// `image` plus white Gaussian noise of standard deviation `sigma` (`[0, 1]` scale), seeded.
+pub fn noisy(image: &GreyImage, sigma: f64, seed: u64) -> GreyImage {
+    use rand::{rngs::SmallRng, Rng, SeedableRng};
+    let mut rng = SmallRng::seed_from_u64(seed);
+    map_levels(image, |v| {
+        v + (sigma * rng.sample::<f64, _>(rand_distr::StandardNormal)) as f32
+    })
+}
+
+/// `image` under a Gaussian blur of standard deviation `sigma` pixels (separable, ±3σ, edges
+/// replicated).
+pub fn blurred(image: &GreyImage, sigma: f64) -> GreyImage {
+    let radius = (3.0 * sigma).ceil() as isize;
+    let kernel: Vec<f32> = (-radius..=radius)
+        .map(|k| (-0.5 * (k as f64 / sigma).powi(2)).exp() as f32)
+        .collect();
+    let total: f32 = kernel.iter().sum();
+    let (w, h) = (image.width() as isize, image.height() as isize);
+    let pass = |src: &[f32], along_rows: bool| -> Vec<f32> {
+        let mut out = vec![0.0f32; src.len()];
+        for r in 0..h {
+            for c in 0..w {
+                let mut acc = 0.0;
+                for (j, &k) in kernel.iter().enumerate() {
+                    let d = j as isize - radius;
+                    let (rr, cc) = if along_rows { (r, c + d) } else { (r + d, c) };
+                    let (rr, cc) = (rr.clamp(0, h - 1), cc.clamp(0, w - 1));
+                    acc += k * src[(rr * w + cc) as usize];
+                }
+                out[(r * w + c) as usize] = acc / total;
+            }
+        }
+        out
+    };
+    let once = pass(image.pixels(), true);
+    GreyImage::new(image.width(), image.height(), pass(&once, false)).expect("blurred image")
+}
+
+/// `image` turned by `degrees` (counter-clockwise on screen) about its centre, bilinear, on a
+/// canvas that holds all of it, filled with the image's median level.
+pub fn turned(image: &GreyImage, degrees: f64) -> GreyImage {
+    let mut sorted = image.pixels().to_vec();
+    sorted.sort_by(f32::total_cmp);
+    let fill = sorted[sorted.len() / 2];
+    let (s, c) = degrees.to_radians().sin_cos();
+    let (w, h) = (image.width() as f64, image.height() as f64);
+    let (ow, oh) = (
+        (w * c.abs() + h * s.abs()).ceil() as usize,
+        (w * s.abs() + h * c.abs()).ceil() as usize,
+    );
+    let mut pixels = Vec::with_capacity(ow * oh);
+    for r in 0..oh {
+        for col in 0..ow {
+            let (x, y) = (col as f64 - ow as f64 / 2.0, r as f64 - oh as f64 / 2.0);
+            // Inverse rotation (y down: counter-clockwise on screen is a negative angle).
+            let (sx, sy) = (c * x - s * y + w / 2.0, s * x + c * y + h / 2.0);
+            pixels.push(image.bilinear(sx, sy).unwrap_or(fill));
+        }
+    }
+    GreyImage::new(ow, oh, pixels).expect("turned image")
+}
+
+/// `image` scaled by `factor` ≤ 1 (a lower magnification): box-averaged over each output
+/// pixel's footprint, as a sensor with larger pixels would integrate it.
+pub fn scaled_down(image: &GreyImage, factor: f64) -> GreyImage {
+    let (w, h) = (image.width(), image.height());
+    let (ow, oh) = (
+        ((w as f64 * factor) as usize).max(1),
+        ((h as f64 * factor) as usize).max(1),
+    );
+    let span = |i: usize, n: usize| {
+        let a = (i as f64 / factor).floor() as usize;
+        a.min(n - 1)..(((i + 1) as f64 / factor).floor() as usize).clamp(a + 1, n)
+    };
+    let src = image.pixels();
+    let mut pixels = Vec::with_capacity(ow * oh);
+    for r in 0..oh {
+        for c in 0..ow {
+            let (rows, cols) = (span(r, h), span(c, w));
+            let n = (rows.len() * cols.len()) as f32;
+            let sum: f32 = rows
+                .flat_map(|y| cols.clone().map(move |x| src[y * w + x]))
+                .sum();
+            pixels.push(sum / n);
+        }
+    }
+    GreyImage::new(ow, oh, pixels).expect("scaled image")
+}
+
+/// A degradation of a real image (the view a lab might get of the same marker), and whether
+/// every marker the image must give is asserted to be found under it.
+pub struct Degradation {
+    /// What was done, for the table.
+    pub name: &'static str,
+    /// Every required marker must still be found.
+    pub asserted: bool,
+    /// The degraded view.
+    pub apply: fn(&GreyImage) -> GreyImage,
+}
+
+/// The degradations of the real-image tests (`real_hpcode_views.rs`, `stamp.rs`): the mild ones (one
+/// pixel of blur, noise and JPEG at camera levels, illumination, a quarter of the contrast,
+/// inversion, any turn, lower magnifications) must keep every marker; the harsh ones (strong
+/// gamma, blur at a quarter period and beyond, heavy noise, a third of the magnification) are
+/// counted only. None may give an ID that is not in the image.
+pub const DEGRADATIONS: &[Degradation] = &[
+    mild("blur 1 px", |i| blurred(i, 1.0)),
+    mild("noise 2 %", |i| noisy(i, 0.02, 1)),
+    mild("JPEG q60", |i| jpeg(i, 60)),
+    mild("JPEG q30", |i| jpeg(i, 30)),
+    mild("contrast ×0.25", |i| {
+        map_levels(i, |v| 0.5 + 0.25 * (v - 0.5))
+    }),
+    mild("inverted", |i| map_levels(i, |v| 1.0 - v)),
+    mild("gradient 0.35–1", |i| {
+        illuminated(i, |x, _| 0.35 + 0.65 * x)
+    }),
+    mild("vignetting", |i| {
+        illuminated(i, |x, y| {
+            (1.0 - 0.8 * ((x - 0.3).powi(2) + (y - 0.4).powi(2))).max(0.15)
+        })
+    }),
+    mild("turned 7°", |i| turned(i, 7.0)),
+    mild("turned 23°", |i| turned(i, 23.0)),
+    mild("turned 45°", |i| turned(i, 45.0)),
+    mild("scaled ×0.75", |i| scaled_down(i, 0.75)),
+    mild("scaled ×0.5", |i| scaled_down(i, 0.5)),
+    // Squared levels open the dim rings of `code18_90.jpg`'s finders at every threshold level
+    // (a finder needs a closed gap inside its ring).
+    harsh("gamma 2", |i| map_levels(i, |v| v * v)),
+    // Square-rooted levels leave the bright residue over `code17.jpg`'s ID row too close to
+    // its dots: that marker is refused (an undecidable ID dot).
+    harsh("gamma 0.5", |i| map_levels(i, f32::sqrt)),
+    harsh("blur 2 px", |i| blurred(i, 2.0)),
+    harsh("noise 5 %", |i| noisy(i, 0.05, 2)),
+    harsh("scaled ×0.35", |i| scaled_down(i, 0.35)),
+];
+
+/// A degradation whose views must keep every required marker.
+const fn mild(name: &'static str, apply: fn(&GreyImage) -> GreyImage) -> Degradation {
+    Degradation {
+        name,
+        asserted: true,
+        apply,
+    }
+}
+
+/// A degradation whose views are counted only.
+const fn harsh(name: &'static str, apply: fn(&GreyImage) -> GreyImage) -> Degradation {
+    Degradation {
+        name,
+        asserted: false,
+        apply,
+    }
+}
+
+/// A real image of the data set: its file, the IDs of its markers, and how many of them every
+/// view must give.
+pub struct RealImage {
+    /// File name (for messages).
+    pub file: &'static str,
+    /// IDs of its markers.
+    pub ids: &'static [u64],
+    /// Markers every view must give (fewer than `ids` where one is physically damaged).
+    pub required: usize,
+}
+
+/// Runs `detect` (image index, view → IDs found) on every [`DEGRADATIONS`] view of `images`
+/// and prints a table per degradation: required markers found, IDs not in the image (or more
+/// markers than it holds). Returns the failures: any wrong or extra ID, and a required marker
+/// missed under an asserted degradation.
+pub fn degraded_views(
+    images: &[(RealImage, GreyImage)],
+    detect: impl Fn(usize, &GreyImage) -> Vec<u64>,
+) -> Vec<String> {
+    let mut failures = Vec::new();
+    let (mut found_all, mut required_all) = (0, 0);
+    println!("| degradation | required markers found | wrong or extra IDs |");
+    println!("|---|---:|---:|");
+    for degradation in DEGRADATIONS {
+        let (mut found, mut required, mut wrong) = (0, 0, 0);
+        for (i, (real, image)) in images.iter().enumerate() {
+            let ids = detect(i, &(degradation.apply)(image));
+            let stray = ids.iter().filter(|id| !real.ids.contains(id)).count()
+                + ids.len().saturating_sub(real.ids.len());
+            let kept = (ids.len() - stray.min(ids.len())).min(real.required);
+            wrong += stray;
+            found += kept;
+            required += real.required;
+            if stray > 0 || (degradation.asserted && kept < real.required) {
+                failures.push(format!(
+                    "{} {}: IDs {ids:?}, expected {:?} (at least {})",
+                    real.file, degradation.name, real.ids, real.required
+                ));
+            }
+        }
+        println!("| {} | {found} / {required} | {wrong} |", degradation.name);
+        found_all += found;
+        required_all += required;
+    }
+    println!("all: {found_all} / {required_all} required markers found");
+    failures
+}
