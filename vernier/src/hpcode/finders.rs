@@ -33,6 +33,9 @@ const MIN_SPACING: f64 = 10.0;
 const LEVELS: [f32; 3] = [0.5, 0.7, 0.3];
 /// Accepted `√(filled gap / filled centre)` (nominal 5/3: blur and threshold move it).
 const GAP_RATIO: (f64, f64) = (1.35, 2.3);
+/// Accepted `√(filled ring / filled gap)` when the centre merged with the gap (nominal 7/5;
+/// the threshold biases of [`GAP_RATIO`]'s range move it over about this one).
+const RING_RATIO: (f64, f64) = (1.15, 1.65);
 /// Largest distance between the centroids of centre and gap, in gap sides.
 const MAX_ECCENTRICITY: f64 = 0.12;
 /// Largest area of other regions inside the gap, as a fraction of the centre.
@@ -77,6 +80,9 @@ pub struct Finder {
     pub polarity: Polarity,
     /// How well the nesting fits the nominal shape, `[0, 1]` (1 = exact 3 : 5 : 7).
     pub score: f64,
+    /// Read from its gap and ring: the centre did not stand out of the gap at any threshold
+    /// level (a dim or saturated centre; see [`dedup`] for which reading wins).
+    pub centre_hidden: bool,
 }
 
 impl Finder {
@@ -251,7 +257,7 @@ impl Labelling {
             let regions = &labels.regions;
             let finders = regions
                 .iter()
-                .filter_map(|c| finder_at(regions, c))
+                .flat_map(|c| finders_at(regions, c).into_iter().flatten())
                 .collect();
             let small = regions
                 .iter()
@@ -462,13 +468,15 @@ fn merge_overlapping(rects: &mut Vec<[usize; 4]>) {
 }
 
 /// One finder per structure and size: the same finder is seen at several threshold levels, of
-/// which the best-shaped is kept. Look-alikes of another size at the same place are kept too:
+/// which the best-shaped is kept, a reading through its centre before any through its gap and
+/// ring only (which adds the finders whose centre merged with the gap, and leaves the others
+/// as the centre readings find them). Look-alikes of another size at the same place are kept too:
 /// a finder's gap can pass for the centre of a finder of the other polarity whose gap is the
 /// ring (module 1.5 times larger), and a centre imaged hollow can hold a smaller one. Shape
 /// alone cannot always tell which is real; the marker geometry and the grid do (a look-alike's
 /// module disagrees with the dot period by a factor of 1.5 or more).
 fn dedup(mut found: Vec<Finder>) -> Vec<Finder> {
-    found.sort_by(|a, b| b.score.total_cmp(&a.score));
+    found.sort_by(|a, b| (a.centre_hidden.cmp(&b.centre_hidden)).then(b.score.total_cmp(&a.score)));
     let mut kept: Vec<Finder> = Vec::with_capacity(found.len());
     for f in found {
         let mut duplicate = false;
@@ -497,48 +505,74 @@ fn dedup(mut found: Vec<Finder>) -> Vec<Finder> {
 /// hollow-looking dot of a dot grid), not a finder.
 fn crowded(f: &Finder, all: &[Finder]) -> bool {
     all.iter().any(|g| {
+        // A finder read through its centre is judged among those alone, as if the readings
+        // through gap and ring did not exist.
         g != f
+            && (f.centre_hidden || !g.centre_hidden)
             && g.polarity == f.polarity
             && (g.module_px / f.module_px - 1.0).abs() < 0.3
             && (g.center - f.center).norm() < MIN_SPACING * f.module_px
     })
 }
 
-/// The finder whose centre region is `centre`, if it and the gap around it form one.
+/// The finders that the closed region `inner` and the hole of the other colour around it
+/// (its parent) may be, read two ways:
 ///
-/// Only the centre and the gap are required: the ring may merge with whatever dark (bright)
-/// structure touches it, e.g. the edge of the part the marker is on, but the gap stays a hole
-/// that holds nothing but the centre.
-fn finder_at(regions: &[Region], centre: &Region) -> Option<Finder> {
-    if centre.open || centre.filled_area < MIN_CENTER_AREA || !compact(centre) {
+/// * **centre and gap** (nominal `√(filled outer / filled inner)` 5/3): only the centre and the
+///   gap are required: the ring may merge with whatever dark (bright) structure touches it,
+///   e.g. the edge of the part the marker is on, but the gap stays a hole that holds nothing
+///   but the centre;
+/// * **gap and ring** (nominal 7/5, the polarity the ring's): where the centre is too dim to
+///   stand out of the gap at any threshold level (a specular or hollow-looking centre under
+///   a steep gamma, an overexposed image whose gaps saturate with the centre), the gap with
+///   the centre in it is the inner region and the ring the outer one. Read as centre and gap,
+///   that pair gives a finder 1.5 times too large, which the window's grid rejects.
+///
+/// The two ranges overlap (a ratio of 1.35–1.6 may be either): both are returned then, and
+/// the grid decides.
+fn finders_at(regions: &[Region], inner: &Region) -> [Option<Finder>; 2] {
+    let Some(outer) = nested_pair(regions, inner) else {
+        return [None, None];
+    };
+    let (side_i, side_o) = (inner.filled_area.sqrt(), outer.filled_area.sqrt());
+    let ratio = side_o / side_i;
+    let eccentricity = distance(inner, outer) / side_o;
+    let center = (centroid(inner) + centroid(outer)) / 2.0;
+    let finder = |range: (f64, f64), nominal: f64, modules: f64, material: &Region| {
+        let centre_hidden = std::ptr::eq(material, outer);
+        (range.0..=range.1).contains(&ratio).then(|| Finder {
+            center,
+            // Inner side `a·m ± 2d` and outer side `b·m ∓ 2d` for a threshold bias `d`: the
+            // sum is `(a + b)·m` (3 + 5 for centre and gap, 5 + 7 for gap and ring).
+            module_px: (side_i + side_o) / modules,
+            polarity: if material.bright {
+                Polarity::BrightDots
+            } else {
+                Polarity::DarkDots
+            },
+            score: (-10.0 * (ratio / nominal).ln().powi(2) - (eccentricity / 0.05).powi(2)).exp(),
+            centre_hidden,
+        })
+    };
+    [
+        finder(GAP_RATIO, 5.0 / 3.0, 8.0, inner),
+        finder(RING_RATIO, 7.0 / 5.0, 12.0, outer),
+    ]
+}
+
+/// The closed, compact hole of the other colour around the closed, compact region `inner`,
+/// holding nothing else of note and centred on it: the nesting of two finder outlines.
+fn nested_pair<'a>(regions: &'a [Region], inner: &Region) -> Option<&'a Region> {
+    if inner.open || inner.filled_area < MIN_CENTER_AREA || !compact(inner) {
         return None;
     }
-    let gap = regions.get(centre.parent?)?;
-    let gap_clutter = gap.filled_area - gap.area - centre.filled_area;
-    if gap.open || !compact(gap) || gap_clutter > MAX_GAP_CLUTTER * centre.filled_area {
+    let outer = regions.get(inner.parent?)?;
+    let clutter = outer.filled_area - outer.area - inner.filled_area;
+    if outer.open || !compact(outer) || clutter > MAX_GAP_CLUTTER * inner.filled_area {
         return None;
     }
-    let (side_c, side_g) = (centre.filled_area.sqrt(), gap.filled_area.sqrt());
-    let ratio = side_g / side_c;
-    if !(GAP_RATIO.0..=GAP_RATIO.1).contains(&ratio) {
-        return None;
-    }
-    let eccentricity = distance(centre, gap) / side_g;
-    if eccentricity > MAX_ECCENTRICITY {
-        return None;
-    }
-    let score = (-10.0 * (ratio / (5.0 / 3.0)).ln().powi(2) - (eccentricity / 0.05).powi(2)).exp();
-    Some(Finder {
-        center: (centroid(centre) + centroid(gap)) / 2.0,
-        // Centre side 3m + 2d and gap side 5m − 2d for a threshold bias d: the sum is 8m.
-        module_px: (side_c + side_g) / 8.0,
-        polarity: if centre.bright {
-            Polarity::BrightDots
-        } else {
-            Polarity::DarkDots
-        },
-        score,
-    })
+    let eccentricity = distance(inner, outer) / outer.filled_area.sqrt();
+    (eccentricity <= MAX_ECCENTRICITY).then_some(outer)
 }
 
 fn centroid(r: &Region) -> Vector2<f64> {
@@ -648,6 +682,44 @@ mod tests {
                 .collect();
             assert_eq!(dark.len(), 1);
             assert!((dark[0].module_px / m - 1.0).abs() < 0.1);
+        }
+    }
+
+    #[test]
+    fn finds_a_finder_whose_centre_does_not_stand_out_of_its_gap() {
+        // Ring at 1, centre at the gap's level 0 (a dim specular centre; gap and centre
+        // saturated alike once inverted): the centre is part of the gap at every threshold
+        // level. The gap inside the ring is read as such, with the ring's polarity and module;
+        // the centre-and-gap reading of the same outlines is a look-alike 1.5 times larger of
+        // the other polarity.
+        for m in [2.0, 8.0, 20.0] {
+            let size = (14.0 * m) as usize + 20;
+            let c = size as f64 / 2.0;
+            let mut image = finder_image(size, size, c, c, m);
+            for (i, v) in image.pixels_mut().iter_mut().enumerate() {
+                // The painted centre's pixels: `[c − 1.5m, c + 1.5m)` along each axis.
+                let (u, w) = ((i % size) as f64 - c, (i / size) as f64 - c);
+                if (-1.5 * m..1.5 * m).contains(&u) && (-1.5 * m..1.5 * m).contains(&w) {
+                    *v = 0.0;
+                }
+            }
+            for (polarity, view) in [
+                (Polarity::BrightDots, image.clone()),
+                (Polarity::DarkDots, image.inverted()),
+            ] {
+                let found = FinderScanner::default().find(&view, None);
+                let real: Vec<&Finder> = found
+                    .iter()
+                    .filter(|f| f.polarity == polarity && (f.module_px / m - 1.0).abs() < 0.1)
+                    .collect();
+                assert_eq!(real.len(), 1, "module {m}, {polarity:?}: {found:?}");
+                assert!(real[0].centre_hidden);
+                assert!(
+                    (real[0].center - Vector2::new(c - 0.5, c - 0.5)).norm() < 0.6,
+                    "m {m} {polarity:?}: {:?}",
+                    real[0]
+                );
+            }
         }
     }
 }

@@ -261,6 +261,7 @@ mod tests {
             module_px: chord / 7.0,
             polarity: Polarity::BrightDots,
             score: 1.0,
+            centre_hidden: false,
         }
     }
 

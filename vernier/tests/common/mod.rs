@@ -201,9 +201,9 @@ pub struct Degradation {
 
 /// The degradations of the real-image tests (`real_hpcode_views.rs`, `stamp.rs`): the mild ones (one
 /// pixel of blur, noise and JPEG at camera levels, illumination, a quarter of the contrast,
-/// inversion, any turn, lower magnifications) must keep every marker; the harsh ones (strong
-/// gamma, blur at a quarter period and beyond, heavy noise, a third of the magnification) are
-/// counted only. None may give an ID that is not in the image.
+/// inversion, any turn, lower magnifications, overexposure) must keep every marker; the harsh
+/// ones (strong gamma or overexposure, blur at a quarter period and beyond, heavy noise, a
+/// third of the magnification) are counted only. None may give an ID that is not in the image.
 pub const DEGRADATIONS: &[Degradation] = &[
     mild("blur 1 px", |i| blurred(i, 1.0)),
     mild("noise 2 %", |i| noisy(i, 0.02, 1)),
@@ -226,6 +226,14 @@ pub const DEGRADATIONS: &[Degradation] = &[
     mild("turned 45°", |i| turned(i, 45.0)),
     mild("scaled ×0.75", |i| scaled_down(i, 0.75)),
     mild("scaled ×0.5", |i| scaled_down(i, 0.5)),
+    // Overexposed: substrate, gaps and finder centres saturate alike (finders read from their
+    // gap and ring).
+    mild("levels ×1.8, clipped", |i| {
+        map_levels(i, |v| (1.8 * v).min(1.0))
+    }),
+    harsh("levels ×2.5, clipped", |i| {
+        map_levels(i, |v| (2.5 * v).min(1.0))
+    }),
     // Squared levels open the dim rings of `code18_90.jpg`'s finders at every threshold level
     // (a finder needs a closed gap inside its ring).
     harsh("gamma 2", |i| map_levels(i, |v| v * v)),
