@@ -591,6 +591,10 @@ impl Measure<'_> {
         } else {
             (*triple, grid)
         };
+        // A grid a whole period off the marker: every check inside the field passes.
+        if !marker_id::field_ends_at_its_edges(image, triple.polarity, &grid.dots) {
+            return reject("dot field does not end at its bottom and right edges");
+        }
         // Three finder-like shapes around something that is not this marker's dot grid.
         if !marker_id::corners_consistent(image, triple.polarity, &grid.dots) {
             return reject("corners do not show three finders and a block of dots");

@@ -109,8 +109,8 @@ pub(crate) fn read_id(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> 
         return None;
     }
     // Top row: ID dots (0, n−5−k); present references (1, c); background between them.
-    let top = read_edge(image, polarity, grid, false)?;
-    let left = read_edge(image, polarity, grid, true)?;
+    let top = read_edge(image, polarity, grid, Edge::Top)?;
+    let left = read_edge(image, polarity, grid, Edge::Left)?;
     // Seen from the front the left column is complete and the top row holds the ID; mirrored,
     // the other way round: the edge missing fewer dots is the complete one. On a tie (ID 0,
     // or a spoiled dot), front unless the left column misses a dot and the top row is the
@@ -144,21 +144,56 @@ pub(crate) fn read_id(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> 
     })
 }
 
-/// Reads the `n − 8` ID positions of the top row (or, `transposed`, of the left column).
+/// A line of `n − 8` dot positions along one side of the marker, between the finders (or the
+/// finder and the dot corner): an edge row or column of the dot field, or the line one period
+/// beyond it, outside the marker.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Edge {
+    /// The top row (the ID, seen from the front).
+    Top,
+    /// The left column (the ID, mirrored).
+    Left,
+    /// The bottom row (always complete).
+    Bottom,
+    /// The right column (always complete).
+    Right,
+    /// The line one period beyond an edge (never a dot).
+    Beyond(Side),
+}
+
+/// A complete side of the marker's dot field ([`Edge::Bottom`], [`Edge::Right`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Side {
+    Bottom,
+    Right,
+}
+
+impl Edge {
+    /// Image position of the point `r` rows inside this edge's line (`r = 0` the line itself,
+    /// `r = 1` the reference dots next to it, always present), at `c` along it.
+    fn point(self, grid: &DotGrid, r: f64, c: f64) -> Vector2<f64> {
+        let last = (grid.size - 1) as f64;
+        match self {
+            Edge::Top => grid.at(r, c),
+            Edge::Left => grid.at(c, r),
+            Edge::Bottom => grid.at(last - r, c),
+            Edge::Right => grid.at(c, last - r),
+            Edge::Beyond(Side::Bottom) => grid.at(last + 1.0 - r, c),
+            Edge::Beyond(Side::Right) => grid.at(c, last + 1.0 - r),
+        }
+    }
+}
+
+/// Reads the `n − 8` dot positions of `edge`, present or missing against the reference dots
+/// one row inside it.
 fn read_edge(
     image: &GreyImage,
     polarity: Polarity,
     grid: &DotGrid,
-    transposed: bool,
+    edge: Edge,
 ) -> Option<EdgeBits> {
     let n = grid.size;
-    let point = |r: f64, c: f64| {
-        if transposed {
-            grid.at(c, r)
-        } else {
-            grid.at(r, c)
-        }
-    };
+    let point = |r: f64, c: f64| edge.point(grid, r, c);
     let sample = |p: Vector2<f64>| dot_level(image, polarity, p, grid);
     let cols = 4..=n - 5;
     let mut present = Vec::with_capacity(n);
@@ -189,7 +224,7 @@ fn read_edge(
             (levels[i] - 0.5 * (hi + lo)) / half
         })
         .collect();
-    log::trace!("edge (transposed {transposed}) dot margins {signed:.2?}");
+    log::trace!("edge {edge:?} dot margins {signed:.2?}");
     // levels[i] is dot column 4 + i; bit k is dot column n − 5 − k.
     let bits: Vec<bool> = signed.iter().rev().map(|&s| s < 0.0).collect();
     let margin = signed.iter().map(|&s| bit_margin(s)).fold(1.0f64, f64::min);
@@ -201,6 +236,45 @@ fn read_edge(
         completeness: sorted.first().copied().unwrap_or(f64::INFINITY),
         completeness_but_one: sorted.get(1).copied().unwrap_or(f64::INFINITY),
     })
+}
+
+/// Fraction of a complete edge's dots read missing from which the grid is taken to be off the
+/// marker there ([`field_ends_at_its_edges`]): a grid a period or more off reads every dot of
+/// the line missing, dust or a hair over the edge some of them (stress scene 52194: 5 of 9).
+const MAX_MISSING_ON_EDGE: f64 = 2.0 / 3.0;
+/// Fraction of the positions one period beyond an edge read present from which the grid is
+/// taken to be off the marker: there is no dot there, and occluders hide material rather than
+/// show it, so only clutter lying on the lattice's positions could pass for half of them.
+const MAX_PRESENT_BEYOND_EDGE: f64 = 0.5;
+
+/// Whether the dot field ends where `grid` says: its bottom row and right column (complete in
+/// every marker, whichever side it is seen from) read present and the lines one period beyond
+/// them read empty, up to what occluders and clutter can do ([`MAX_MISSING_ON_EDGE`],
+/// [`MAX_PRESENT_BEYOND_EDGE`]). A grid a whole period off the marker, or drifting off it
+/// towards a far edge (finders that fit a tilted view while the planes' steps do not hold to
+/// the marker's far corner, as under strong perspective), passes every check inside the field,
+/// which looks alike shifted by a period, and reads another row as the ID; here one of the
+/// four lines reads wrong. Sides whose samples leave the image are not judged.
+pub(crate) fn field_ends_at_its_edges(
+    image: &GreyImage,
+    polarity: Polarity,
+    grid: &DotGrid,
+) -> bool {
+    if grid.size < 9 {
+        return false;
+    }
+    let fraction = |edge: Edge, missing: bool| {
+        read_edge(image, polarity, grid, edge).map(|bits| {
+            let count = bits.bits.iter().filter(|&&b| b == missing).count();
+            count as f64 / bits.bits.len().max(1) as f64
+        })
+    };
+    [(Edge::Bottom, Side::Bottom), (Edge::Right, Side::Right)]
+        .into_iter()
+        .all(|(inside, side)| {
+            fraction(inside, true).is_none_or(|f| f < MAX_MISSING_ON_EDGE)
+                && fraction(Edge::Beyond(side), false).is_none_or(|f| f <= MAX_PRESENT_BEYOND_EDGE)
+        })
 }
 
 /// How clearly a dot of signed level `s` (half contrasts from the threshold: +1 a present
@@ -600,6 +674,40 @@ mod tests {
             }
         }
         GreyImage::new(w, h, pixels).unwrap()
+    }
+
+    #[test]
+    fn a_grid_a_period_off_the_marker_is_caught_at_its_far_edges() {
+        // Inside the field a grid shifted by a whole period looks right (dots where dots
+        // are); the bottom row, the right column and the lines beyond them do not.
+        let layout = HpCodeLayout::from_code_size(10.0, 33)
+            .unwrap()
+            .with_id(0b1_0110_0101)
+            .unwrap();
+        let pose = Pose::planar(-4.0, 3.0, 0.3, 1.0);
+        let image = render(&layout, &pose, &RenderOptions::new(300, 280)).unwrap();
+        let grid = grid_for(&pose, 10.0, 17, &image);
+        assert!(field_ends_at_its_edges(&image, Polarity::BrightDots, &grid));
+        for (dx, dy) in [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)] {
+            let shifted = DotGrid {
+                center: grid.center + grid.step_x * dx + grid.step_y * dy,
+                ..grid
+            };
+            assert!(
+                !field_ends_at_its_edges(&image, Polarity::BrightDots, &shifted),
+                "shifted by ({dx}, {dy}) periods"
+            );
+        }
+        // A hair over half of the right column is not a shifted grid.
+        let mut hidden = image.clone();
+        for r in 4..9 {
+            hidden = dim_dot(&hidden, &grid, (r as f64, 16.0), 0.9);
+        }
+        assert!(field_ends_at_its_edges(
+            &hidden,
+            Polarity::BrightDots,
+            &grid
+        ));
     }
 
     #[test]
