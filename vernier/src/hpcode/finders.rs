@@ -81,7 +81,8 @@ pub struct Finder {
     /// How well the nesting fits the nominal shape, `[0, 1]` (1 = exact 3 : 5 : 7).
     pub score: f64,
     /// Read from its gap and ring: the centre did not stand out of the gap at any threshold
-    /// level (a dim or saturated centre; see [`dedup`] for which reading wins).
+    /// level (a dim or saturated centre). Where both readings find a finder, the one through
+    /// its centre is kept.
     pub centre_hidden: bool,
 }
 
@@ -476,7 +477,11 @@ fn merge_overlapping(rects: &mut Vec<[usize; 4]>) {
 /// alone cannot always tell which is real; the marker geometry and the grid do (a look-alike's
 /// module disagrees with the dot period by a factor of 1.5 or more).
 fn dedup(mut found: Vec<Finder>) -> Vec<Finder> {
-    found.sort_by(|a, b| (a.centre_hidden.cmp(&b.centre_hidden)).then(b.score.total_cmp(&a.score)));
+    found.sort_by(|a, b| {
+        a.centre_hidden
+            .cmp(&b.centre_hidden)
+            .then(b.score.total_cmp(&a.score))
+    });
     let mut kept: Vec<Finder> = Vec::with_capacity(found.len());
     for f in found {
         let mut duplicate = false;
@@ -522,7 +527,7 @@ fn crowded(f: &Finder, all: &[Finder]) -> bool {
 ///   gap are required: the ring may merge with whatever dark (bright) structure touches it,
 ///   e.g. the edge of the part the marker is on, but the gap stays a hole that holds nothing
 ///   but the centre;
-/// * **gap and ring** (nominal 7/5, the polarity the ring's): where the centre is too dim to
+/// * **gap and ring** (nominal 7/5, with the ring's polarity): where the centre is too dim to
 ///   stand out of the gap at any threshold level (a specular or hollow-looking centre under
 ///   a steep gamma, an overexposed image whose gaps saturate with the centre), the gap with
 ///   the centre in it is the inner region and the ring the outer one. Read as centre and gap,

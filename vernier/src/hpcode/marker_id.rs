@@ -254,7 +254,8 @@ const MAX_PRESENT_BEYOND_EDGE: f64 = 0.5;
 /// towards a far edge (finders that fit a tilted view while the planes' steps do not hold to
 /// the marker's far corner, as under strong perspective), passes every check inside the field,
 /// which looks alike shifted by a period, and reads another row as the ID; here one of the
-/// four lines reads wrong. Sides whose samples leave the image are not judged.
+/// four lines reads wrong. Lines whose samples leave the image, or that show no contrast, are
+/// not judged.
 pub(crate) fn field_ends_at_its_edges(
     image: &GreyImage,
     polarity: Polarity,

@@ -25,7 +25,7 @@
 //!   fundamentals' is the dots' shape, whatever it is, and the offsets follow the
 //!   fundamentals alone. Point-symmetric dots (sharp, blurred or pixel-integrated dots of any
 //!   round or square shape) have every harmonic in phase with the dot centres; where the
-//!   free fit's phases are consistent with that (Hausman's test, [`symmetric_shift`]), the
+//!   free fit's phases are consistent with that (Hausman's test, `symmetric_shift`), the
 //!   harmonics are then *tied* to the dot centres, real amplitudes, and every harmonic
 //!   informs the offsets as well as the slopes — square dots carry ~80 % more position
 //!   information in their harmonics than in the fundamentals. Where they are not (coma,
