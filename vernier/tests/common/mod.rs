@@ -163,8 +163,8 @@ pub fn turned(image: &GreyImage, degrees: f64) -> GreyImage {
 
 /// `image` seen in perspective: its top edge shrunk by `fraction` of the width at each end
 /// (keystone, a camera looking down at the part from below its top edge), bilinear, the
-/// uncovered corners filled with the median level. About a 20° tilt for 6 % on a marker half
-/// the image wide.
+/// uncovered corners filled with the median level. A marker half the image high then has its
+/// far edge about `fraction` narrower than its near edge.
 pub fn keystone(image: &GreyImage, fraction: f64) -> GreyImage {
     let (w, h) = (image.width() as f64, image.height() as f64);
     let k = fraction * w;
