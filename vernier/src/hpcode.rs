@@ -420,9 +420,7 @@ impl HpCodeDetector {
         image: &GreyImage,
         triples: &[FinderTriple],
     ) -> Result<Vec<HpCodeMarker>> {
-        let threads = crate::parallel::thread_count(self.params.threads)
-            .min(triples.len())
-            .max(1);
+        let threads = crate::parallel::thread_count(self.params.threads, triples.len());
         while self.workers.len() < threads {
             self.workers.push(MarkerWorker::default());
         }
@@ -430,7 +428,7 @@ impl HpCodeDetector {
         let results = crate::parallel::map_in_order(
             &mut self.workers[..threads],
             triples,
-            |worker, _, triple| Measure::new(params, worker).measure(image, triple),
+            |worker, triple| Measure::new(params, worker).measure(image, triple),
         )
         .ok_or_else(|| {
             Error::PatternNotFound("internal: a marker-measuring thread panicked".into())

@@ -3,15 +3,17 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-/// The number of threads a `threads` setting asks for: 0 = every core the system offers.
-pub(crate) fn thread_count(threads: usize) -> usize {
-    match threads {
+/// The threads to run `jobs` jobs on for a `threads` setting (0 = every core the system
+/// offers): never more than the jobs, at least one.
+pub(crate) fn thread_count(threads: usize, jobs: usize) -> usize {
+    let asked = match threads {
         0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
         n => n,
-    }
+    };
+    asked.min(jobs).max(1)
 }
 
-/// `job(worker, k, &items[k])` for every item, each of the `workers` (one thread each; their
+/// `job(worker, item)` for every item, each of the `workers` (one thread each; their
 /// per-thread state, such as a phase engine) taking the next item not yet taken, so that
 /// costly items spread over the threads wherever they sit in the list. The results come back
 /// in the items' order, the sequential result whatever the number of workers; `None` when a
@@ -19,7 +21,7 @@ pub(crate) fn thread_count(threads: usize) -> usize {
 pub(crate) fn map_in_order<W, T, R>(
     workers: &mut [W],
     items: &[T],
-    job: impl Fn(&mut W, usize, &T) -> R + Sync,
+    job: impl Fn(&mut W, &T) -> R + Sync,
 ) -> Option<Vec<R>>
 where
     W: Send,
@@ -35,7 +37,7 @@ where
             let Some(item) = items.get(k) else {
                 return done;
             };
-            done.push((k, job(worker, k, item)));
+            done.push((k, job(worker, item)));
         }
     };
     let mut results: Vec<(usize, R)> = match workers {
@@ -66,17 +68,17 @@ mod tests {
         let items: Vec<u64> = (0..50).collect();
         for n in 1..=4 {
             let mut workers = vec![0usize; n];
-            let out = map_in_order(&mut workers, &items, |count, k, &v| {
+            let out = map_in_order(&mut workers, &items, |count, &v| {
                 *count += 1;
-                (k as u64, v * v)
+                (v, v * v)
             })
             .unwrap();
             assert_eq!(out, items.iter().map(|&v| (v, v * v)).collect::<Vec<_>>());
             assert_eq!(workers.iter().sum::<usize>(), items.len());
         }
-        assert_eq!(map_in_order(&mut [(); 0], &items, |_, _, _| ()), None);
+        assert_eq!(map_in_order(&mut [(); 0], &items, |_, _| ()), None);
         assert_eq!(
-            map_in_order(&mut [(); 0], &[0u8; 0], |_, _, _| ()),
+            map_in_order(&mut [(); 0], &[0u8; 0], |_, _| ()),
             Some(vec![])
         );
     }

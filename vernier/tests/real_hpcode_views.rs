@@ -5,93 +5,49 @@
 
 mod common;
 
+use common::RealImage;
 use vernier::GreyImage;
 
-/// One real image: file, code size W, the IDs of its markers, and how many of them every view
-/// must find (all, except where a marker is physically damaged: see the notes).
+/// One real image (file, the IDs of its markers, how many of them every view must give: all,
+/// except where a marker is physically damaged, see the notes) and its code size W.
 struct Case {
-    file: &'static str,
+    image: RealImage,
     code_size: usize,
-    ids: &'static [u64],
-    required: usize,
+}
+
+/// A [`Case`] of `file` with code size `code_size`.
+const fn case(file: &'static str, code_size: usize, ids: &'static [u64], required: usize) -> Case {
+    Case {
+        image: RealImage {
+            file,
+            ids,
+            required,
+        },
+        code_size,
+    }
 }
 
 const CASES: &[Case] = &[
     // Dark dots on a bright background; the period typed (15.5) is not the real one (20).
-    Case {
-        file: "HPCodeImage_20um.png",
-        code_size: 33,
-        ids: &[0, 1],
-        required: 2,
-    },
-    Case {
-        file: "Image96.png",
-        code_size: 33,
-        ids: &[0, 1],
-        required: 2,
-    },
-    Case {
-        file: "Image100.png",
-        code_size: 33,
-        ids: &[0, 1],
-        required: 2,
-    },
+    case("HPCodeImage_20um.png", 33, &[0, 1], 2),
+    case("Image96.png", 33, &[0, 1], 2),
+    case("Image100.png", 33, &[0, 1], 2),
     // Dark dots, dust over a finder and the ID row, text beside the marker.
-    Case {
-        file: "code17.jpg",
-        code_size: 37,
-        ids: &[0],
-        required: 1,
-    },
-    Case {
-        file: "code18.jpg",
-        code_size: 37,
-        ids: &[1],
-        required: 1,
-    },
-    Case {
-        file: "code18_90.jpg",
-        code_size: 37,
-        ids: &[1],
-        required: 1,
-    },
-    Case {
-        file: "code18_180.jpg",
-        code_size: 37,
-        ids: &[1],
-        required: 1,
-    },
-    Case {
-        file: "code19.png",
-        code_size: 33,
-        ids: &[0],
-        required: 1,
-    },
+    case("code17.jpg", 37, &[0], 1),
+    case("code18.jpg", 37, &[1], 1),
+    case("code18_90.jpg", 37, &[1], 1),
+    case("code18_180.jpg", 37, &[1], 1),
+    case("code19.png", 33, &[0], 1),
     // The second marker's left dot column is cut by the edge of its part: whether it is seen
     // from the front (ID 0) or mirrored cannot be told, so it is dropped, never guessed.
-    Case {
-        file: "code21.jpg",
-        code_size: 33,
-        ids: &[0, 0],
-        required: 1,
-    },
+    case("code21.jpg", 33, &[0, 0], 1),
     // Uneven illumination, a hair across the second marker's ID row: one of its ID dots sits
     // halfway between present and missing (ID 0 or 16), so that marker is dropped, never
     // guessed. (A quarter-turn reading of it, ID 0 by luck, passed before the corner check
     // followed the illumination; `the_hidden_id_of_code22_is_not_read_a_quarter_turn`.)
-    Case {
-        file: "code22.tif",
-        code_size: 33,
-        ids: &[0, 0],
-        required: 1,
-    },
+    case("code22.tif", 33, &[0, 0], 1),
     // Table photo, three markers with finders a few pixels wide, dust over the dot fields.
-    Case {
-        file: "code31.jpg",
-        code_size: 37,
-        ids: &[0, 1, 2],
-        required: 3,
-    },
+    case("code31.jpg", 37, &[0, 1, 2], 3),
 ];
 
 /// The six views: identity, three rotations, two flips.
@@ -116,6 +72,7 @@ fn every_view_of_every_hp_code_image_gives_its_markers() {
     let mut views_checked = 0;
     for case in CASES {
         let mut detector = common::hp_detector(15.5, case.code_size);
+        let case = &case.image;
         let image = GreyImage::open(dir.join(case.file)).unwrap();
         for (name, view) in views(&image) {
             for (encoding, view) in [("png", view.clone()), ("jpeg90", common::jpeg(&view, 90))] {
@@ -168,15 +125,11 @@ fn the_hidden_id_of_code22_is_not_read_a_quarter_turn() {
 #[test]
 fn real_images_made_worse_never_give_a_wrong_id() {
     let dir = common::data_dir().join("hpcode");
-    let images: Vec<(common::RealImage, GreyImage)> = CASES
+    let images: Vec<(RealImage, GreyImage)> = CASES
         .iter()
         .map(|case| {
-            let real = common::RealImage {
-                file: case.file,
-                ids: case.ids,
-                required: case.required,
-            };
-            (real, GreyImage::open(dir.join(case.file)).unwrap())
+            let image = GreyImage::open(dir.join(case.image.file)).unwrap();
+            (case.image, image)
         })
         .collect();
     let failures = common::degraded_views(&images, |i, view| {

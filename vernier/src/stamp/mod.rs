@@ -462,10 +462,9 @@ impl StampDetector {
                 }
                 // The whole-field fits, the costly part, one stamp per thread.
                 let this = &*self;
-                let threads = parallel::thread_count(this.params.threads).min(read.len());
-                let mut workers = vec![(); threads.max(1)];
+                let mut workers = vec![(); parallel::thread_count(this.params.threads, read.len())];
                 let fits =
-                    parallel::map_in_order(&mut workers, &read, |_, _, r| this.field_for(image, r))
+                    parallel::map_in_order(&mut workers, &read, |_, r| this.field_for(image, r))
                         .ok_or_else(|| {
                             Error::PatternNotFound(
                                 "internal: a stamp-measuring thread panicked".into(),

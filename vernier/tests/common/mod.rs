@@ -140,25 +140,38 @@ pub fn blurred(image: &GreyImage, sigma: f64) -> GreyImage {
 /// `image` turned by `degrees` (counter-clockwise on screen) about its centre, bilinear, on a
 /// canvas that holds all of it, filled with the image's median level.
 pub fn turned(image: &GreyImage, degrees: f64) -> GreyImage {
-    let mut sorted = image.pixels().to_vec();
-    sorted.sort_by(f32::total_cmp);
-    let fill = sorted[sorted.len() / 2];
     let (s, c) = degrees.to_radians().sin_cos();
     let (w, h) = (image.width() as f64, image.height() as f64);
     let (ow, oh) = (
         (w * c.abs() + h * s.abs()).ceil() as usize,
         (w * s.abs() + h * c.abs()).ceil() as usize,
     );
+    warped(image, ow, oh, |col, r| {
+        let (x, y) = (col - ow as f64 / 2.0, r - oh as f64 / 2.0);
+        // Inverse rotation (y down: counter-clockwise on screen is a negative angle).
+        (c * x - s * y + w / 2.0, s * x + c * y + h / 2.0)
+    })
+}
+
+/// An `ow × oh` image whose pixel `(col, row)` is `image` at `source(col, row)` (bilinear),
+/// the image's median level where that falls outside it.
+fn warped(
+    image: &GreyImage,
+    ow: usize,
+    oh: usize,
+    source: impl Fn(f64, f64) -> (f64, f64),
+) -> GreyImage {
+    let mut sorted = image.pixels().to_vec();
+    sorted.sort_by(f32::total_cmp);
+    let fill = sorted[sorted.len() / 2];
     let mut pixels = Vec::with_capacity(ow * oh);
     for r in 0..oh {
         for col in 0..ow {
-            let (x, y) = (col as f64 - ow as f64 / 2.0, r as f64 - oh as f64 / 2.0);
-            // Inverse rotation (y down: counter-clockwise on screen is a negative angle).
-            let (sx, sy) = (c * x - s * y + w / 2.0, s * x + c * y + h / 2.0);
-            pixels.push(image.bilinear(sx, sy).unwrap_or(fill));
+            let (x, y) = source(col as f64, r as f64);
+            pixels.push(image.bilinear(x, y).unwrap_or(fill));
         }
     }
-    GreyImage::new(ow, oh, pixels).expect("turned image")
+    GreyImage::new(ow, oh, pixels).expect("warped image")
 }
 
 /// `image` seen in perspective: its top edge shrunk by `fraction` of the width at each end
@@ -187,22 +200,13 @@ pub fn keystone(image: &GreyImage, fraction: f64) -> GreyImage {
         (b[2 * i], b[2 * i + 1]) = (u, v);
     }
     let m = a.lu().solve(&b).expect("keystone homography");
-    let mut sorted = image.pixels().to_vec();
-    sorted.sort_by(f32::total_cmp);
-    let fill = sorted[sorted.len() / 2];
-    let mut pixels = Vec::with_capacity(image.width() * image.height());
-    for r in 0..image.height() {
-        for c in 0..image.width() {
-            let (x, y) = (c as f64, r as f64);
-            let d = m[6] * x + m[7] * y + 1.0;
-            let (u, v) = (
-                (m[0] * x + m[1] * y + m[2]) / d,
-                (m[3] * x + m[4] * y + m[5]) / d,
-            );
-            pixels.push(image.bilinear(u, v).unwrap_or(fill));
-        }
-    }
-    GreyImage::new(image.width(), image.height(), pixels).expect("keystone image")
+    warped(image, image.width(), image.height(), |x, y| {
+        let d = m[6] * x + m[7] * y + 1.0;
+        (
+            (m[0] * x + m[1] * y + m[2]) / d,
+            (m[3] * x + m[4] * y + m[5]) / d,
+        )
+    })
 }
 
 /// `image` scaled by `factor` ≤ 1 (a lower magnification): box-averaged over each output
@@ -316,6 +320,7 @@ const fn harsh(name: &'static str, apply: fn(&GreyImage) -> GreyImage) -> Degrad
 
 /// A real image of the data set: its file, the IDs of its markers, and how many of them every
 /// view must give.
+#[derive(Clone, Copy)]
 pub struct RealImage {
     /// File name (for messages).
     pub file: &'static str,
