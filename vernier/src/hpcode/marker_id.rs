@@ -10,7 +10,9 @@
 //! back, e.g. a flipped image) shows its ID there instead.
 
 use crate::grey_image::{GreyImage, Polarity};
+use crate::order_stats::robust_sigma;
 use nalgebra::Vector2;
+use std::f64::consts::PI;
 
 /// Dot grid of one marker in the image: where dot `(row r, col c)` of the `n × n` marker is.
 #[derive(Clone, Copy, Debug)]
@@ -109,8 +111,8 @@ pub(crate) fn read_id(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> 
         return None;
     }
     // Top row: ID dots (0, n−5−k); present references (1, c); background between them.
-    let top = read_edge(image, polarity, grid, Edge::Top)?;
-    let left = read_edge(image, polarity, grid, Edge::Left)?;
+    let top = read_edge(image, polarity, grid, Edge::Top, true)?;
+    let left = read_edge(image, polarity, grid, Edge::Left, true)?;
     // Seen from the front the left column is complete and the top row holds the ID; mirrored,
     // the other way round: the edge missing fewer dots is the complete one. On a tie (ID 0,
     // or a spoiled dot), front unless the left column misses a dot and the top row is the
@@ -185,49 +187,111 @@ impl Edge {
 }
 
 /// Reads the `n − 8` dot positions of `edge`, present or missing against the reference dots
-/// one row inside it.
+/// one row inside it. With `judge_occluders` (an edge that may carry the ID), each dot's margin
+/// also says how clearly no occluder made its reading (docs/design.md#hp-id-occluders): a
+/// present dot needs surroundings like a drawn dot's (no fibre running through it,
+/// [`ridge_level`]; no blob filling the bridges to its reference dot and its neighbours), a
+/// missing one intact reference dots beside it (a blob at the background's level that hides
+/// them may hide it).
 fn read_edge(
     image: &GreyImage,
     polarity: Polarity,
     grid: &DotGrid,
     edge: Edge,
+    judge_occluders: bool,
 ) -> Option<EdgeBits> {
     let n = grid.size;
     let point = |r: f64, c: f64| edge.point(grid, r, c);
     let sample = |p: Vector2<f64>| dot_level(image, polarity, p, grid);
-    let cols = 4..=n - 5;
+    let shifts = reference_shifts(n, &point, &sample)?;
+    // Dot column 4 + i along the edge, `r` rows inside it, moved by its reference's shift.
+    let at = |i: usize, r: f64, c: f64| point(r + shifts[i].0, 4.0 + i as f64 + c + shifts[i].1);
     let mut present = Vec::with_capacity(n);
     let mut background = Vec::with_capacity(2 * n);
     let mut levels = Vec::with_capacity(n);
-    for (c, (dr, dc)) in cols.clone().zip(reference_shifts(n, &point, &sample)?) {
-        let c = c as f64;
-        let at = |r: f64, c: f64| point(r + dr, c + dc);
-        levels.push(sample(at(0.0, c))?);
-        present.push(sample(at(1.0, c))?);
-        background.push(sample(at(0.5, c - 0.5))?);
-        background.push(sample(at(0.5, c + 0.5))?);
+    for i in 0..shifts.len() {
+        levels.push(sample(at(i, 0.0, 0.0))?);
+        present.push(sample(at(i, 1.0, 0.0))?);
+        background.push(sample(at(i, 0.5, -0.5))?);
+        background.push(sample(at(i, 0.5, 0.5))?);
     }
-    let global_half =
-        0.5 * (median_or_nan(&mut present.clone()) - median_or_nan(&mut background.clone()));
+    let (global_hi, global_lo) = (
+        median_or_nan(&mut present.clone()),
+        median_or_nan(&mut background.clone()),
+    );
+    let global_half = 0.5 * (global_hi - global_lo);
     if global_half.is_nan() || global_half <= 0.0 {
         return None;
     }
+    // Half contrasts from the edge's threshold: bridges judged with it, since an occluder
+    // spoils the local levels that `to_signed` takes.
+    let to_global = |level: f64| (level - 0.5 * (global_hi + global_lo)) / global_half;
     // Each dot against its own neighbourhood (the three reference dots below it and the four
     // gaps beside those), so that uneven illumination along the edge does not eat the margin;
     // the local contrast is never taken below half the edge's.
-    let signed: Vec<f64> = (0..levels.len())
-        .map(|i| {
-            let near = i.saturating_sub(1)..(i + 2).min(levels.len());
-            let hi = median_or_nan(&mut present[near.clone()].to_vec());
-            let lo = median_or_nan(&mut background[2 * near.start..2 * near.end].to_vec());
-            let half = (0.5 * (hi - lo)).max(0.5 * global_half);
-            (levels[i] - 0.5 * (hi + lo)) / half
-        })
-        .collect();
-    log::trace!("edge {edge:?} dot margins {signed:.2?}");
+    let within =
+        |i: usize, reach: usize| i.saturating_sub(reach)..(i + reach + 1).min(levels.len());
+    let near = |i: usize| within(i, 1);
+    let signed_within = |i: usize, reach: usize, level: f64| {
+        let dots = within(i, reach);
+        let hi = median_or_nan(&mut present[dots.clone()].to_vec());
+        let lo = median_or_nan(&mut background[2 * dots.start..2 * dots.end].to_vec());
+        let half = (0.5 * (hi - lo)).max(0.5 * global_half);
+        (level - 0.5 * (hi + lo)) / half
+    };
+    let to_signed = |i: usize, level: f64| signed_within(i, 1, level);
+    let signed: Vec<f64> = (0..levels.len()).map(|i| to_signed(i, levels[i])).collect();
+    let occlusion = if judge_occluders {
+        // A difference of levels: half contrasts without the threshold's offset.
+        let ridge = |i: usize, r: f64| {
+            ridge_level(|(dr, dc)| material(image, polarity, at(i, r + dr, dc)))
+                .map(|level| level / global_half)
+        };
+        // The least material of the bridges from a dot inwards and along its line: a blob
+        // that fills an empty position fills them all, a speck or an impulse one of them. The
+        // reference dots' (towards the next row, and along theirs) lie between present dots,
+        // so blur lifts them at least as much as an ID dot's.
+        let bridge = |i: usize, r: f64| {
+            let level =
+                |(dr, dc)| patch_level(image, polarity, at(i, r + dr, dc), grid, BRIDGE_RANK);
+            let bridges = [(0.5, 0.0), (0.0, -0.5), (0.0, 0.5)].map(level);
+            let least = bridges
+                .into_iter()
+                .try_fold(f64::INFINITY, |least, b| Some(least.min(b?)));
+            least.map(to_global)
+        };
+        // Each reference dot against the seven around it (whose median an occluder that
+        // hides three of them does not move, and which follow the illumination), lifted by
+        // the references' own scatter (noise).
+        let references: Vec<f64> = (0..signed.len())
+            .map(|j| signed_within(j, 3, present[j]))
+            .collect();
+        let median = median_or_nan(&mut references.clone());
+        let mut deviations: Vec<f64> = references.iter().map(|v| (v - median).abs()).collect();
+        let allowance = NOISE_ALLOWANCE * robust_sigma(&mut deviations);
+        let ridges = excess(&signed, |i| ridge(i, 0.0), |i| ridge(i, 1.0));
+        let bridges = excess(&signed, |i| bridge(i, 0.0), |i| bridge(i, 1.0));
+        log::trace!("edge {edge:?} ridge excess {ridges:.2?}, bridge excess {bridges:.2?}");
+        (0..signed.len())
+            .map(|i| match signed[i] >= 0.0 {
+                true => 1.0 - 2.0 * ridges[i].max(bridges[i]),
+                // A reference dot hidden beside a missing reading: what hid it may hide this.
+                false => near(i)
+                    .map(|j| references[j] + allowance)
+                    .fold(f64::INFINITY, f64::min),
+            })
+            .collect()
+    } else {
+        vec![1.0; signed.len()]
+    };
+    log::trace!("edge {edge:?} dot margins {signed:.2?}, occlusion margins {occlusion:.2?}");
     // levels[i] is dot column 4 + i; bit k is dot column n − 5 − k.
     let bits: Vec<bool> = signed.iter().rev().map(|&s| s < 0.0).collect();
-    let margin = signed.iter().map(|&s| bit_margin(s)).fold(1.0f64, f64::min);
+    let margin = signed
+        .iter()
+        .zip(&occlusion)
+        .map(|(&s, &o)| bit_margin(s).min(o.clamp(0.0, 1.0)))
+        .fold(1.0f64, f64::min);
     let mut sorted = signed.clone();
     sorted.sort_by(f64::total_cmp);
     Some(EdgeBits {
@@ -265,7 +329,7 @@ pub(crate) fn field_ends_at_its_edges(
         return false;
     }
     let fraction = |edge: Edge, missing: bool| {
-        read_edge(image, polarity, grid, edge).map(|bits| {
+        read_edge(image, polarity, grid, edge, false).map(|bits| {
             let count = bits.bits.iter().filter(|&&b| b == missing).count();
             count as f64 / bits.bits.len().max(1) as f64
         })
@@ -592,6 +656,107 @@ fn bridge_threshold(
 /// an empty cell of dark-dot markers) need to cover three samples to matter.
 const OCCLUSION_RANK: usize = 6;
 
+/// Directions of the lines [`ridge_level`] samples through a dot position, over a half turn
+/// (every 15°).
+const RIDGE_DIRECTIONS: usize = 12;
+/// Distances of those lines from the position, periods: a line within ~0.2 period of it can
+/// fill a third of [`dot_level`]'s samples.
+const RIDGE_OFFSETS: [f64; 5] = [-0.24, -0.12, 0.0, 0.12, 0.24];
+/// Distances along each line, on both sides, periods: beyond a drawn dot's half-width (¼
+/// period, ~0.35 at its corners), short of the neighbouring dots' edges (¾ period along the
+/// axes).
+const RIDGE_REACH: [f64; 3] = [0.36, 0.44, 0.52];
+/// Distance across the line at which its sides are sampled, periods: beyond the half-width of
+/// a fibre half a period wide, with the lines' spacing to spare.
+const RIDGE_SIDE: f64 = 0.4;
+
+/// How far the most material line across the surroundings of a dot position stands out of its
+/// two sides, over lines in [`RIDGE_DIRECTIONS`] at [`RIDGE_OFFSETS`]: a line's level is the
+/// smaller over its two halves (beyond the position on either side) of the half's median
+/// material at [`RIDGE_REACH`] (an impulse, such as a hot pixel, is ignored) less the larger
+/// of the same medians [`RIDGE_SIDE`] to either side of it.
+/// `material_at(dr, dc)` is the material at `(dr, dc)` periods from the position along the
+/// grid's rows and columns. Around a drawn dot every such line leaves the dot into background
+/// as its sides do, up to blur of the neighbouring dots; a fibre that fills an empty position
+/// runs on beyond it, on both sides, as a ridge. Surroundings that are uniformly lighter or
+/// darker (the substrate beyond the marker's edge often differs from the gaps between its
+/// dots) make no ridge. Lines that leave the image are left out; `None` when all do.
+fn ridge_level(material_at: impl Fn((f64, f64)) -> Option<f64>) -> Option<f64> {
+    let mut most: Option<f64> = None;
+    for k in 0..RIDGE_DIRECTIONS {
+        let (sin, cos) = (PI * k as f64 / RIDGE_DIRECTIONS as f64).sin_cos();
+        // Along the line (rows, columns): `(sin, cos)`; across it: `(cos, −sin)`.
+        let at =
+            |t: f64, across: f64| material_at((across * cos + t * sin, t * cos - across * sin));
+        for offset in RIDGE_OFFSETS {
+            // Each half of the line: its median material less its more material side's.
+            let half = |way: f64| -> Option<f64> {
+                let median_along = |across: f64| -> Option<f64> {
+                    let mut levels = [0.0; RIDGE_REACH.len()];
+                    for (level, t) in levels.iter_mut().zip(RIDGE_REACH) {
+                        *level = at(way * t, across)?;
+                    }
+                    Some(median_or_nan(&mut levels))
+                };
+                let sides =
+                    median_along(offset - RIDGE_SIDE)?.max(median_along(offset + RIDGE_SIDE)?);
+                Some(median_along(offset)? - sides)
+            };
+            // A line darker than a side is no ridge, whatever the sides hold (a line that
+            // leaves a reference dot's surroundings between dots and an ID dot's outside
+            // the marker sees different sides).
+            if let Some(line) = half(1.0).zip(half(-1.0)).map(|(a, b)| a.min(b).max(0.0)) {
+                most = Some(most.map_or(line, |m| m.max(line)));
+            }
+        }
+    }
+    most
+}
+
+/// How much more each present dot's surroundings show of a measure (a ridge, a filled
+/// bridge) than the reference dots' do, half contrasts: the dot's value less the references'
+/// median and [`NOISE_ALLOWANCE`] robust standard deviations of theirs; `−∞` for dots read
+/// missing or not judged. `own(i)` is the measure around dot `i` of the edge, `reference(i)`
+/// around its reference dot (in half contrasts, `None` where it cannot be judged). The
+/// reference dots have at least the ID dots' neighbours, so blur lifts their surroundings as
+/// much; an occluder over one ID position lifts that position's alone (or a reference's,
+/// which the median ignores).
+fn excess(
+    signed: &[f64],
+    own: impl Fn(usize) -> Option<f64>,
+    reference: impl Fn(usize) -> Option<f64>,
+) -> Vec<f64> {
+    let mut references: Vec<f64> = (0..signed.len()).filter_map(reference).collect();
+    let median = median_or_nan(&mut references);
+    let mut deviations: Vec<f64> = references.iter().map(|v| (v - median).abs()).collect();
+    let allowance = NOISE_ALLOWANCE * robust_sigma(&mut deviations);
+    (0..signed.len())
+        .map(|i| match (signed[i] >= 0.0, own(i)) {
+            // NaN (no reference judged) fails the comparison: not judged either.
+            (true, Some(level)) if !median.is_nan() => level - median - allowance,
+            _ => f64::NEG_INFINITY,
+        })
+        .collect()
+}
+
+/// Robust standard deviations of the reference dots' own measures by which an ID dot's must
+/// exceed their median before it counts ([`excess`]): noise, JPEG blocks and impulses make
+/// ridges of their own, as much around a reference dot as around an ID dot.
+const NOISE_ALLOWANCE: f64 = 3.0;
+/// Rank (ascending, of 9) of the sample taken as a bridge's level: the median, which an
+/// impulse does not move.
+const BRIDGE_RANK: usize = 4;
+
+/// Material level of `image` at point `p` (1 = a dot's level for bright dots, and the
+/// background's for dark dots, inverted), bilinear; `None` outside the image.
+fn material(image: &GreyImage, polarity: Polarity, p: Vector2<f64>) -> Option<f64> {
+    let v = f64::from(image.bilinear(p.x, p.y)?);
+    Some(match polarity {
+        Polarity::BrightDots => v,
+        Polarity::DarkDots => 1.0 - v,
+    })
+}
+
 /// Material level (1 = dot) around image point `p`: an upper order statistic
 /// ([`OCCLUSION_RANK`]) of nine bilinear samples on a 3×3 grid ±0.15 period along the grid
 /// axes, so that a hair or scratch over part of a dot does not change it. `None` outside the
@@ -602,18 +767,29 @@ fn dot_level(
     p: Vector2<f64>,
     grid: &DotGrid,
 ) -> Option<f64> {
+    patch_level(image, polarity, p, grid, OCCLUSION_RANK)
+}
+
+/// The material sample of `rank` (ascending) among nine bilinear samples on a 3×3 grid ±0.15
+/// period along the grid axes around image point `p`; `None` outside the image.
+fn patch_level(
+    image: &GreyImage,
+    polarity: Polarity,
+    p: Vector2<f64>,
+    grid: &DotGrid,
+    rank: usize,
+) -> Option<f64> {
     let (dx, dy) = (grid.step_x * 0.15, grid.step_y * 0.15);
     let mut samples = [0.0f64; 9];
     for (k, s) in samples.iter_mut().enumerate() {
-        let q = p + dx * (k % 3) as f64 - dx + dy * (k / 3) as f64 - dy;
-        let v = f64::from(image.bilinear(q.x, q.y)?);
-        *s = match polarity {
-            Polarity::BrightDots => v,
-            Polarity::DarkDots => 1.0 - v,
-        };
+        *s = material(
+            image,
+            polarity,
+            p + dx * (k % 3) as f64 - dx + dy * (k / 3) as f64 - dy,
+        )?;
     }
     samples.sort_by(f64::total_cmp);
-    Some(samples[OCCLUSION_RANK])
+    samples.get(rank).copied()
 }
 
 /// The median, NaN for no values (then every comparison with it fails).
@@ -730,5 +906,82 @@ mod tests {
             assert_eq!((r.id, r.mirrored), (0, false), "dot {dot:?} 30 % hidden");
             assert!(r.confidence >= 0.2, "dot {dot:?} 30 % hidden: {r:?}");
         }
+    }
+
+    /// `image` with a straight fibre `width` periods wide through `grid`'s point `(r, c)` at
+    /// `angle` to the rows, blended `strength` of the way towards `level` (antialiased over
+    /// one pixel), as a hair or a textile fibre over the marker would be.
+    fn fibre(
+        image: &GreyImage,
+        grid: &DotGrid,
+        (r, c): (f64, f64),
+        (angle, width): (f64, f64),
+        level: f32,
+        strength: f32,
+    ) -> GreyImage {
+        let (w, h) = (image.width(), image.height());
+        let through = grid.at(r, c);
+        let along = (grid.step_x * angle.cos() + grid.step_y * angle.sin()).normalize();
+        let half_width = 0.5 * width * grid.step_x.norm();
+        let mut pixels = image.pixels().to_vec();
+        for (i, v) in pixels.iter_mut().enumerate() {
+            let d = Vector2::new((i % w) as f64, (i / w) as f64) - through;
+            let across = (d.x * along.y - d.y * along.x).abs();
+            let cover = (half_width + 0.5 - across).clamp(0.0, 1.0) as f32;
+            *v += strength * cover * (level - *v);
+        }
+        GreyImage::new(w, h, pixels).unwrap()
+    }
+
+    #[test]
+    fn a_fibre_over_an_empty_id_cell_never_reads_as_a_dot() {
+        // A fibre as dark as the dots of a dark-dot marker, across an empty ID cell, fills
+        // enough of the cell to read as a dot there: another marker's ID. A dot is a blob
+        // whose surroundings are background; a fibre runs on beyond the cell on both sides.
+        // Sharp and noise-free, then blurred (0.12 period) with 3 % noise at 60 % contrast.
+        let id = 0b1_0110_0101u64;
+        let layout = HpCodeLayout::from_code_size(10.0, 33)
+            .unwrap()
+            .with_id(id)
+            .unwrap();
+        let pose = Pose::planar(2.0, -1.0, 0.2, 0.8);
+        let blurred = RenderOptions {
+            blur_sigma: 1.5,
+            noise_std: 0.03,
+            background: 0.9,
+            foreground: 0.3,
+            seed: 5,
+            ..RenderOptions::new(300, 280)
+        };
+        let mut wrong = Vec::new();
+        for options in [RenderOptions::new(300, 280), blurred] {
+            let image = render(&layout, &pose, &options).unwrap();
+            let image = match options.foreground > options.background {
+                true => image.inverted(),
+                false => image,
+            };
+            let grid = grid_for(&pose, 10.0, 17, &image);
+            let clean = read_id(&image, Polarity::DarkDots, &grid).unwrap();
+            assert_eq!(clean.id, id);
+            assert!(clean.confidence >= 0.4, "{clean:?}");
+            let dot = options.foreground.min(options.background);
+            for column in [4.0, 6.0, 7.0, 10.0, 12.0] {
+                for degrees in [0.0, 30.0, 60.0, 90.0, 135.0] {
+                    for (width, offset) in [(0.1, 0.0), (0.25, 0.0), (0.25, 0.12), (0.5, 0.12)] {
+                        for strength in [0.6, 0.9] {
+                            let angle = f64::to_radians(degrees);
+                            let at = (offset * angle.cos(), column - offset * angle.sin());
+                            let across = (angle, width);
+                            let spoiled = fibre(&image, &grid, at, across, dot, strength);
+                            let r = read_id(&spoiled, Polarity::DarkDots, &grid).unwrap();
+                            if r.id != id && r.confidence >= 0.2 {
+                                wrong.push((column, degrees, width, strength, r.id, r.confidence));
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(wrong.is_empty(), "{} wrong: {wrong:.2?}", wrong.len());
     }
 }
