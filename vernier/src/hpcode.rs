@@ -95,8 +95,9 @@ pub struct HpCodeParams {
     /// smallest margin of an ID or left-column dot, `marker_id::bit_margin`: a present dot's
     /// height above the present/absent threshold in half contrasts; a missing dot's depth
     /// below the middle of the lower half, in quarter contrasts, since a hidden present dot
-    /// may sit anywhere below the threshold). Default 0.2: a present dot 10 % of the contrast
-    /// above the threshold, a missing one 30 % below it.
+    /// may sit anywhere below the threshold; each also no more than how clearly no fibre or
+    /// blob over the ID strip made the reading, docs/design.md#hp-id-occluders). Default 0.2:
+    /// a present dot 10 % of the contrast above the threshold, a missing one 30 % below it.
     pub min_id_confidence: f64,
     /// Phase-engine settings used on each window.
     pub phase: PhaseParams,

@@ -58,7 +58,9 @@ impl DotGrid {
 pub(crate) struct EdgeBits {
     /// Bit `k` = dot absent, `k = 0` next to the far finder.
     pub bits: Vec<bool>,
-    /// Smallest [`bit_margin`] of the edge's dots (1 = perfectly clean, 0 = undecidable).
+    /// Smallest margin of the edge's dots (1 = perfectly clean, 0 = undecidable): the
+    /// [`bit_margin`] of its level, and on an ID edge no more than how clearly no occluder made
+    /// the reading ([`read_edge`]).
     pub margin: f64,
     /// Smallest signed distance of a dot's level above the threshold, half contrasts: > 0
     /// when every dot of the edge is present, the more so the larger.
