@@ -60,7 +60,7 @@ pub(crate) struct EdgeBits {
     pub bits: Vec<bool>,
     /// Smallest margin of the edge's dots (1 = perfectly clean, 0 = undecidable): the
     /// [`bit_margin`] of its level, and on an ID edge no more than how clearly no occluder made
-    /// the reading ([`read_edge`]).
+    /// the reading ([`EdgeSamples::occlusion_margins`]).
     pub margin: f64,
     /// Smallest signed distance of a dot's level above the threshold, half contrasts: > 0
     /// when every dot of the edge is present, the more so the larger.
@@ -190,11 +190,7 @@ impl Edge {
 
 /// Reads the `n − 8` dot positions of `edge`, present or missing against the reference dots
 /// one row inside it. With `judge_occluders` (an edge that may carry the ID), each dot's margin
-/// also says how clearly no occluder made its reading (docs/design.md#hp-id-occluders): a
-/// present dot needs surroundings like a drawn dot's (no fibre running through it,
-/// [`ridge_level`]; no blob filling the bridges to its reference dot and its neighbours), a
-/// missing one intact reference dots beside it (a blob at the background's level that hides
-/// them may hide it).
+/// also says how clearly no occluder made its reading ([`EdgeSamples::occlusion_margins`]).
 fn read_edge(
     image: &GreyImage,
     polarity: Polarity,
@@ -202,89 +198,15 @@ fn read_edge(
     edge: Edge,
     judge_occluders: bool,
 ) -> Option<EdgeBits> {
-    let n = grid.size;
-    let point = |r: f64, c: f64| edge.point(grid, r, c);
-    let sample = |p: Vector2<f64>| dot_level(image, polarity, p, grid);
-    let shifts = reference_shifts(n, &point, &sample)?;
-    // Dot column 4 + i along the edge, `r` rows inside it, moved by its reference's shift.
-    let at = |i: usize, r: f64, c: f64| point(r + shifts[i].0, 4.0 + i as f64 + c + shifts[i].1);
-    let mut present = Vec::with_capacity(n);
-    let mut background = Vec::with_capacity(2 * n);
-    let mut levels = Vec::with_capacity(n);
-    for i in 0..shifts.len() {
-        levels.push(sample(at(i, 0.0, 0.0))?);
-        present.push(sample(at(i, 1.0, 0.0))?);
-        background.push(sample(at(i, 0.5, -0.5))?);
-        background.push(sample(at(i, 0.5, 0.5))?);
-    }
-    let (global_hi, global_lo) = (
-        median_or_nan(&mut present.clone()),
-        median_or_nan(&mut background.clone()),
-    );
-    let global_half = 0.5 * (global_hi - global_lo);
-    if global_half.is_nan() || global_half <= 0.0 {
-        return None;
-    }
-    // Half contrasts from the edge's threshold: bridges judged with it, since an occluder
-    // spoils the local levels that `to_signed` takes.
-    let to_global = |level: f64| (level - 0.5 * (global_hi + global_lo)) / global_half;
+    let samples = EdgeSamples::take(image, polarity, grid, edge)?;
     // Each dot against its own neighbourhood (the three reference dots below it and the four
-    // gaps beside those), so that uneven illumination along the edge does not eat the margin;
-    // the local contrast is never taken below half the edge's.
-    let within =
-        |i: usize, reach: usize| i.saturating_sub(reach)..(i + reach + 1).min(levels.len());
-    let near = |i: usize| within(i, 1);
-    let signed_within = |i: usize, reach: usize, level: f64| {
-        let dots = within(i, reach);
-        let hi = median_or_nan(&mut present[dots.clone()].to_vec());
-        let lo = median_or_nan(&mut background[2 * dots.start..2 * dots.end].to_vec());
-        let half = (0.5 * (hi - lo)).max(0.5 * global_half);
-        (level - 0.5 * (hi + lo)) / half
-    };
-    let to_signed = |i: usize, level: f64| signed_within(i, 1, level);
-    let signed: Vec<f64> = (0..levels.len()).map(|i| to_signed(i, levels[i])).collect();
-    let occlusion = if judge_occluders {
-        // A difference of levels: half contrasts without the threshold's offset.
-        let ridge = |i: usize, r: f64| {
-            ridge_level(|(dr, dc)| material(image, polarity, at(i, r + dr, dc)))
-                .map(|level| level / global_half)
-        };
-        // The least material of the bridges from a dot inwards and along its line: a blob
-        // that fills an empty position fills them all, a speck or an impulse one of them. The
-        // reference dots' (towards the next row, and along theirs) lie between present dots,
-        // so blur lifts them at least as much as an ID dot's.
-        let bridge = |i: usize, r: f64| {
-            let level =
-                |(dr, dc)| patch_level(image, polarity, at(i, r + dr, dc), grid, BRIDGE_RANK);
-            let bridges = [(0.5, 0.0), (0.0, -0.5), (0.0, 0.5)].map(level);
-            let least = bridges
-                .into_iter()
-                .try_fold(f64::INFINITY, |least, b| Some(least.min(b?)));
-            least.map(to_global)
-        };
-        // Each reference dot against the seven around it (whose median an occluder that
-        // hides three of them does not move, and which follow the illumination), lifted by
-        // the references' own scatter (noise).
-        let references: Vec<f64> = (0..signed.len())
-            .map(|j| signed_within(j, 3, present[j]))
-            .collect();
-        let median = median_or_nan(&mut references.clone());
-        let mut deviations: Vec<f64> = references.iter().map(|v| (v - median).abs()).collect();
-        let allowance = NOISE_ALLOWANCE * robust_sigma(&mut deviations);
-        let ridges = excess(&signed, |i| ridge(i, 0.0), |i| ridge(i, 1.0));
-        let bridges = excess(&signed, |i| bridge(i, 0.0), |i| bridge(i, 1.0));
-        log::trace!("edge {edge:?} ridge excess {ridges:.2?}, bridge excess {bridges:.2?}");
-        (0..signed.len())
-            .map(|i| match signed[i] >= 0.0 {
-                true => 1.0 - 2.0 * ridges[i].max(bridges[i]),
-                // A reference dot hidden beside a missing reading: what hid it may hide this.
-                false => near(i)
-                    .map(|j| references[j] + allowance)
-                    .fold(f64::INFINITY, f64::min),
-            })
-            .collect()
-    } else {
-        vec![1.0; signed.len()]
+    // gaps beside those), so that uneven illumination along the edge does not eat the margin.
+    let signed: Vec<f64> = (0..samples.levels.len())
+        .map(|i| samples.signed_within(i, 1, samples.levels[i]))
+        .collect();
+    let occlusion = match judge_occluders {
+        true => samples.occlusion_margins(&signed),
+        false => vec![1.0; signed.len()],
     };
     log::trace!("edge {edge:?} dot margins {signed:.2?}, occlusion margins {occlusion:.2?}");
     // levels[i] is dot column 4 + i; bit k is dot column n − 5 − k.
@@ -302,6 +224,146 @@ fn read_edge(
         completeness: sorted.first().copied().unwrap_or(f64::INFINITY),
         completeness_but_one: sorted.get(1).copied().unwrap_or(f64::INFINITY),
     })
+}
+
+/// The levels [`read_edge`] samples along one edge, dot column `4 + i` at index `i`
+/// ([`dot_level`], material units).
+struct EdgeSamples<'a> {
+    image: &'a GreyImage,
+    polarity: Polarity,
+    grid: &'a DotGrid,
+    edge: Edge,
+    /// Local grid shift `(rows, columns)` of each column's reference dot, periods.
+    shifts: Vec<(f64, f64)>,
+    /// The edge's dots.
+    levels: Vec<f64>,
+    /// Their reference dots, one row inside (always present).
+    present: Vec<f64>,
+    /// The two gaps beside each reference dot, towards the edge (always empty).
+    background: Vec<f64>,
+    /// Medians of `present` and `background`.
+    hi: f64,
+    lo: f64,
+}
+
+impl<'a> EdgeSamples<'a> {
+    /// Samples `edge` of `grid`; `None` when a sample lies outside the image or the reference
+    /// dots do not stand out of the gaps.
+    fn take(
+        image: &'a GreyImage,
+        polarity: Polarity,
+        grid: &'a DotGrid,
+        edge: Edge,
+    ) -> Option<Self> {
+        let point = |r: f64, c: f64| edge.point(grid, r, c);
+        let sample = |p: Vector2<f64>| dot_level(image, polarity, p, grid);
+        let shifts = reference_shifts(grid.size, &point, &sample)?;
+        let mut samples = EdgeSamples {
+            image,
+            polarity,
+            grid,
+            edge,
+            shifts,
+            levels: Vec::new(),
+            present: Vec::new(),
+            background: Vec::new(),
+            hi: f64::NAN,
+            lo: f64::NAN,
+        };
+        for i in 0..samples.shifts.len() {
+            let level = |r: f64, c: f64| sample(samples.at(i, r, c));
+            let (dot, reference) = (level(0.0, 0.0)?, level(1.0, 0.0)?);
+            let gaps = [level(0.5, -0.5)?, level(0.5, 0.5)?];
+            samples.levels.push(dot);
+            samples.present.push(reference);
+            samples.background.extend(gaps);
+        }
+        samples.hi = median_or_nan(&mut samples.present.clone());
+        samples.lo = median_or_nan(&mut samples.background.clone());
+        (samples.half() > 0.0).then_some(samples)
+    }
+
+    /// Half the edge's contrast (NaN without samples).
+    fn half(&self) -> f64 {
+        0.5 * (self.hi - self.lo)
+    }
+
+    /// Image position of the point `r` rows inside the edge and `c` along it from dot column
+    /// `4 + i`, moved by that column's reference shift.
+    fn at(&self, i: usize, r: f64, c: f64) -> Vector2<f64> {
+        let (dr, dc) = self.shifts[i];
+        self.edge.point(self.grid, r + dr, 4.0 + i as f64 + c + dc)
+    }
+
+    /// `level` in half contrasts from the threshold of the references and gaps within `reach`
+    /// columns of column `i` (the local contrast never taken below half the edge's).
+    fn signed_within(&self, i: usize, reach: usize, level: f64) -> f64 {
+        let dots = i.saturating_sub(reach)..(i + reach + 1).min(self.levels.len());
+        let hi = median_or_nan(&mut self.present[dots.clone()].to_vec());
+        let lo = median_or_nan(&mut self.background[2 * dots.start..2 * dots.end].to_vec());
+        let half = (0.5 * (hi - lo)).max(0.5 * self.half());
+        (level - 0.5 * (hi + lo)) / half
+    }
+
+    /// Per dot (read as `signed`), how clearly no occluder made its reading
+    /// (docs/design.md#hp-id-occluders): a present dot needs surroundings like a drawn dot's
+    /// (no fibre running through it, [`ridge_level`]; no blob filling the bridges to its
+    /// reference dot and its neighbours), a missing one intact reference dots beside it (a
+    /// blob at the background's level that hides them may hide it).
+    fn occlusion_margins(&self, signed: &[f64]) -> Vec<f64> {
+        let (image, polarity) = (self.image, self.polarity);
+        // A difference of levels: half contrasts without the threshold's offset.
+        let ridge = |i: usize, r: f64| {
+            ridge_level(|(dr, dc)| material(image, polarity, self.at(i, r + dr, dc)))
+                .map(|level| level / self.half())
+        };
+        // The least material of the bridges from a dot inwards and along its line: a blob
+        // that fills an empty position fills them all, a speck or an impulse one of them. The
+        // reference dots' (towards the next row, and along theirs) lie between present dots,
+        // so blur lifts them at least as much as an ID dot's. In half contrasts from the
+        // edge's threshold, since an occluder spoils the local levels.
+        let bridge = |i: usize, r: f64| {
+            let level = |(dr, dc)| {
+                patch_level(
+                    image,
+                    polarity,
+                    self.at(i, r + dr, dc),
+                    self.grid,
+                    BRIDGE_RANK,
+                )
+            };
+            let bridges = [(0.5, 0.0), (0.0, -0.5), (0.0, 0.5)].map(level);
+            let least = bridges
+                .into_iter()
+                .try_fold(f64::INFINITY, |least, b| Some(least.min(b?)));
+            least.map(|l| (l - 0.5 * (self.hi + self.lo)) / self.half())
+        };
+        // Each reference dot against the seven around it (whose median an occluder that
+        // hides three of them does not move, and which follow the illumination), lifted by
+        // the references' own scatter (noise).
+        let references: Vec<f64> = (0..signed.len())
+            .map(|j| self.signed_within(j, 3, self.present[j]))
+            .collect();
+        let median = median_or_nan(&mut references.clone());
+        let mut deviations: Vec<f64> = references.iter().map(|v| (v - median).abs()).collect();
+        let allowance = NOISE_ALLOWANCE * robust_sigma(&mut deviations);
+        let ridges = excess(signed, |i| ridge(i, 0.0), |i| ridge(i, 1.0));
+        let bridges = excess(signed, |i| bridge(i, 0.0), |i| bridge(i, 1.0));
+        log::trace!(
+            "edge {:?} ridge excess {ridges:.2?}, bridge excess {bridges:.2?}",
+            self.edge
+        );
+        let near = |i: usize| i.saturating_sub(1)..(i + 2).min(signed.len());
+        (0..signed.len())
+            .map(|i| match signed[i] >= 0.0 {
+                true => 1.0 - 2.0 * ridges[i].max(bridges[i]),
+                // A reference dot hidden beside a missing reading: what hid it may hide this.
+                false => near(i)
+                    .map(|j| references[j] + allowance)
+                    .fold(f64::INFINITY, f64::min),
+            })
+            .collect()
+    }
 }
 
 /// Fraction of a complete edge's dots read missing from which the grid is taken to be off the
