@@ -295,10 +295,15 @@ impl<'a> EdgeSamples<'a> {
         self.edge.point(self.grid, r + dr, 4.0 + i as f64 + c + dc)
     }
 
+    /// The columns within `reach` of column `i`.
+    fn within(&self, i: usize, reach: usize) -> std::ops::Range<usize> {
+        i.saturating_sub(reach)..(i + reach + 1).min(self.levels.len())
+    }
+
     /// `level` in half contrasts from the threshold of the references and gaps within `reach`
     /// columns of column `i` (the local contrast never taken below half the edge's).
     fn signed_within(&self, i: usize, reach: usize, level: f64) -> f64 {
-        let dots = i.saturating_sub(reach)..(i + reach + 1).min(self.levels.len());
+        let dots = self.within(i, reach);
         let hi = median_or_nan(&mut self.present[dots.clone()].to_vec());
         let lo = median_or_nan(&mut self.background[2 * dots.start..2 * dots.end].to_vec());
         let half = (0.5 * (hi - lo)).max(0.5 * self.half());
@@ -344,21 +349,19 @@ impl<'a> EdgeSamples<'a> {
         let references: Vec<f64> = (0..signed.len())
             .map(|j| self.signed_within(j, 3, self.present[j]))
             .collect();
-        let median = median_or_nan(&mut references.clone());
-        let mut deviations: Vec<f64> = references.iter().map(|v| (v - median).abs()).collect();
-        let allowance = NOISE_ALLOWANCE * robust_sigma(&mut deviations);
+        let (_, allowance) = median_and_allowance(&references);
         let ridges = excess(signed, |i| ridge(i, 0.0), |i| ridge(i, 1.0));
         let bridges = excess(signed, |i| bridge(i, 0.0), |i| bridge(i, 1.0));
         log::trace!(
             "edge {:?} ridge excess {ridges:.2?}, bridge excess {bridges:.2?}",
             self.edge
         );
-        let near = |i: usize| i.saturating_sub(1)..(i + 2).min(signed.len());
         (0..signed.len())
             .map(|i| match signed[i] >= 0.0 {
                 true => 1.0 - 2.0 * ridges[i].max(bridges[i]),
                 // A reference dot hidden beside a missing reading: what hid it may hide this.
-                false => near(i)
+                false => self
+                    .within(i, 1)
                     .map(|j| references[j] + allowance)
                     .fold(f64::INFINITY, f64::min),
             })
@@ -790,10 +793,8 @@ fn excess(
     own: impl Fn(usize) -> Option<f64>,
     reference: impl Fn(usize) -> Option<f64>,
 ) -> Vec<f64> {
-    let mut references: Vec<f64> = (0..signed.len()).filter_map(reference).collect();
-    let median = median_or_nan(&mut references);
-    let mut deviations: Vec<f64> = references.iter().map(|v| (v - median).abs()).collect();
-    let allowance = NOISE_ALLOWANCE * robust_sigma(&mut deviations);
+    let references: Vec<f64> = (0..signed.len()).filter_map(reference).collect();
+    let (median, allowance) = median_and_allowance(&references);
     (0..signed.len())
         .map(|i| match (signed[i] >= 0.0, own(i)) {
             // NaN (no reference judged) fails the comparison: not judged either.
@@ -801,6 +802,14 @@ fn excess(
             _ => f64::NEG_INFINITY,
         })
         .collect()
+}
+
+/// The median of the reference dots' `values` (NaN for none) and the allowance above it,
+/// [`NOISE_ALLOWANCE`] robust standard deviations of theirs.
+fn median_and_allowance(values: &[f64]) -> (f64, f64) {
+    let median = median_or_nan(&mut values.to_vec());
+    let mut deviations: Vec<f64> = values.iter().map(|v| (v - median).abs()).collect();
+    (median, NOISE_ALLOWANCE * robust_sigma(&mut deviations))
 }
 
 /// Robust standard deviations of the reference dots' own measures by which an ID dot's must
