@@ -153,13 +153,23 @@ fn run_case(rng: &mut SmallRng, kind: Occluder, like_dots: bool, outcomes: &mut 
                 false => &mut outcomes.wrong,
             };
             wrong.push(format!("{case}: read {read:?}"));
+            // For a look at it: `VERNIER_OCCLUDER_DUMP=folder` writes the image of each.
+            if let Some(dir) = std::env::var_os("VERNIER_OCCLUDER_DUMP") {
+                let path = std::path::Path::new(&dir).join(format!("id{id}_w{code_size}.png"));
+                seen.save_png(path, 16).expect("dump");
+            }
         }
     }
 }
 
 #[test]
 fn occluders_over_the_id_strips_are_refused_rather_than_misread() {
-    let mut rng = SmallRng::seed_from_u64(11);
+    // Other seeds: `VERNIER_OCCLUDER_SEED=12 cargo test …` (the bound below is seed 11's).
+    let seed = std::env::var("VERNIER_OCCLUDER_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(11);
+    let mut rng = SmallRng::seed_from_u64(seed);
     let (mut wrong, mut confined) = (Vec::new(), Vec::new());
     println!(
         "| occluder over an ID strip | found with its ID | refused | wrong ID \
@@ -186,11 +196,13 @@ fn occluders_over_the_id_strips_are_refused_rather_than_misread() {
     }
     println!("confined to one ID position (indistinguishable from another marker):");
     confined.iter().for_each(|c| println!("  {c}"));
+    println!("reaching beyond one position:");
+    wrong.iter().for_each(|c| println!("  {c}"));
     // Known gap, measured: one wide, weak fibre crossing the row obliquely (ID 1355: 0.53
     // period, 65 %), whose sides inside the dot field fall on dots, so that no line through
-    // the position stands out of both its sides. This seed is the one the checks were built
-    // with; other seeds leave 2–3 such cases, wide fibres and blobs at the background's level
-    // (docs/design.md#hp-id-occluders).
+    // the position stands out of both its sides. This seed is the one the present-dot checks
+    // were built with; seeds 12–14 (on which the hidden-side check was built) leave 1, 1 and
+    // 0 such cases (docs/design.md#hp-id-occluders).
     assert!(
         wrong.len() <= KNOWN_UNCAUGHT,
         "{} wrong:\n{}",

@@ -313,8 +313,8 @@ impl<'a> EdgeSamples<'a> {
     /// Per dot (read as `signed`), how clearly no occluder made its reading
     /// (docs/design.md#hp-id-occluders): a present dot needs surroundings like a drawn dot's
     /// (no fibre running through it, [`ridge_level`]; no blob filling the bridges to its
-    /// reference dot and its neighbours), a missing one intact reference dots beside it (a
-    /// blob at the background's level that hides them may hide it).
+    /// reference dot and its neighbours), a missing one intact dots around it
+    /// ([`EdgeSamples::hiding_margins`]).
     fn occlusion_margins(&self, signed: &[f64]) -> Vec<f64> {
         let (image, polarity) = (self.image, self.polarity);
         // A difference of levels: half contrasts without the threshold's offset.
@@ -346,10 +346,7 @@ impl<'a> EdgeSamples<'a> {
         // Each reference dot against the seven around it (whose median an occluder that
         // hides three of them does not move, and which follow the illumination), lifted by
         // the references' own scatter (noise).
-        let references: Vec<f64> = (0..signed.len())
-            .map(|j| self.signed_within(j, 3, self.present[j]))
-            .collect();
-        let (_, allowance) = median_and_allowance(&references);
+        let hiding = self.hiding_margins(signed);
         let ridges = excess(signed, |i| ridge(i, 0.0), |i| ridge(i, 1.0));
         let bridges = excess(signed, |i| bridge(i, 0.0), |i| bridge(i, 1.0));
         log::trace!(
@@ -359,13 +356,96 @@ impl<'a> EdgeSamples<'a> {
         (0..signed.len())
             .map(|i| match signed[i] >= 0.0 {
                 true => 1.0 - 2.0 * ridges[i].max(bridges[i]),
-                // A reference dot hidden beside a missing reading: what hid it may hide this.
+                false => hiding[i],
+            })
+            .collect()
+    }
+
+    /// Per dot read missing (∞ for the others), how clearly no occluder hid it: what hides a
+    /// dot whole at the background's level reaches into the dots around it, so the reference
+    /// dots beside it must be intact, and the dots beside it on the edge, where present, too.
+    ///
+    /// * A reference dot wholly hidden: its level against the seven references around it
+    ///   (a median that an occluder hiding three of them does not move, and that follows the
+    ///   illumination), raised by three robust standard deviations of the references' own
+    ///   levels (noise).
+    /// * A dot hidden in part, on its side facing the missing reading ([`facing_level`]):
+    ///   `1 − 2·shortfall`, the shortfall of that side's level from the median of the same
+    ///   measure on the seven references around it (their side facing the edge), less three
+    ///   robust standard deviations of theirs.
+    ///
+    /// [`facing_level`]: EdgeSamples::facing_level
+    fn hiding_margins(&self, signed: &[f64]) -> Vec<f64> {
+        let n = signed.len();
+        let references: Vec<f64> = (0..n)
+            .map(|j| self.signed_within(j, 3, self.present[j]))
+            .collect();
+        let (_, allowance) = median_and_allowance(&references);
+        // Towards the edge: one row outwards.
+        let facing: Vec<f64> = (0..n)
+            .map(|j| self.signed_within(j, 3, self.facing_level(j, 1.0, (-1.0, 0.0))))
+            .collect();
+        let finite = |values: &[f64]| -> Vec<f64> {
+            values.iter().copied().filter(|v| v.is_finite()).collect()
+        };
+        let (_, facing_allowance) = median_and_allowance(&finite(&facing));
+        // `1 − 2·shortfall` of a side's level beside column j (1 where not judged: NaN).
+        let intact_side = |j: usize, level: f64| {
+            let around = median_or_nan(&mut finite(&facing[self.within(j, 3)]));
+            let shortfall = around - facing_allowance - level;
+            match shortfall.is_nan() {
+                true => 1.0,
+                false => 1.0 - 2.0 * shortfall.max(0.0),
+            }
+        };
+        (0..n)
+            .map(|i| match signed[i] >= 0.0 {
+                true => f64::INFINITY,
                 false => self
                     .within(i, 1)
-                    .map(|j| references[j] + allowance)
+                    .map(|j| {
+                        let reference = (references[j] + allowance).min(intact_side(j, facing[j]));
+                        if j == i || signed[j] < 0.0 {
+                            return reference;
+                        }
+                        // The dot beside it on the edge, its side towards column i.
+                        let towards = if i > j { 1.0 } else { -1.0 };
+                        let side = self.facing_level(j, 0.0, (0.0, towards));
+                        reference.min(intact_side(j, self.signed_within(j, 3, side)))
+                    })
                     .fold(f64::INFINITY, f64::min),
             })
             .collect()
+    }
+
+    /// Material of the side facing `towards` (a unit step along a grid axis, rows and
+    /// columns) of the dot `r` rows inside the edge at column `j`: the median of three samples
+    /// [`FACING_DEPTH`] from its centre towards that side, spread ±[`FACING_DEPTH`] across.
+    /// The centre is taken where that level is highest within ±[`FACING_SEARCH`] of the
+    /// grid's position (under perspective a dot lies off the linear grid), which a dot hidden
+    /// on that side up to its centre cannot escape. NaN where a sample leaves the image.
+    fn facing_level(&self, j: usize, r: f64, towards: (f64, f64)) -> f64 {
+        const STEPS: i32 = 2;
+        let step = FACING_SEARCH / STEPS as f64;
+        let (a, b) = towards;
+        let mut best = f64::NAN;
+        for di in -STEPS..=STEPS {
+            for dj in -STEPS..=STEPS {
+                let row = r + di as f64 * step + FACING_DEPTH * a;
+                let column = dj as f64 * step + FACING_DEPTH * b;
+                let mut three = [0.0; 3];
+                for (sample, s) in three.iter_mut().zip([-FACING_DEPTH, 0.0, FACING_DEPTH]) {
+                    let p = self.at(j, row + s * b, column - s * a);
+                    match material(self.image, self.polarity, p) {
+                        Some(v) => *sample = v,
+                        None => return f64::NAN,
+                    }
+                }
+                three.sort_by(f64::total_cmp);
+                best = best.max(three[1]);
+            }
+        }
+        best
     }
 }
 
@@ -816,6 +896,14 @@ fn median_and_allowance(values: &[f64]) -> (f64, f64) {
 /// exceed their median before it counts ([`excess`]): noise, JPEG blocks and impulses make
 /// ridges of their own, as much around a reference dot as around an ID dot.
 const NOISE_ALLOWANCE: f64 = 3.0;
+/// Distance from a dot's centre of the samples of its side ([`EdgeSamples::facing_level`]),
+/// periods: well inside the smallest drawn dots (some real markers' are under half a period
+/// wide), so that the side's level falls only where an occluder reaches that far towards the
+/// dot's centre.
+const FACING_DEPTH: f64 = 0.08;
+/// How far [`EdgeSamples::facing_level`] looks for a dot's centre around its grid position,
+/// periods.
+const FACING_SEARCH: f64 = 0.1;
 /// Rank (ascending, of 9) of the sample taken as a bridge's level: the median, which an
 /// impulse does not move.
 const BRIDGE_RANK: usize = 4;
@@ -992,19 +1080,42 @@ mod tests {
         level: f32,
         strength: f32,
     ) -> GreyImage {
-        let (w, h) = (image.width(), image.height());
         let through = grid.at(r, c);
         let along = (grid.step_x * angle.cos() + grid.step_y * angle.sin()).normalize();
         let half_width = 0.5 * width * grid.step_x.norm();
+        occluded(image, (level, strength), |p| {
+            let d = p - through;
+            half_width - (d.x * along.y - d.y * along.x).abs()
+        })
+    }
+
+    /// `image` blended `strength` of the way towards `level` wherever `inside(pixel)` (pixels
+    /// inside the occluder's edge; negative outside) is over −½, antialiased over one pixel.
+    fn occluded(
+        image: &GreyImage,
+        (level, strength): (f32, f32),
+        inside: impl Fn(Vector2<f64>) -> f64,
+    ) -> GreyImage {
+        let (w, h) = (image.width(), image.height());
         let mut pixels = image.pixels().to_vec();
         for (i, v) in pixels.iter_mut().enumerate() {
-            let d = Vector2::new((i % w) as f64, (i / w) as f64) - through;
-            let across = (d.x * along.y - d.y * along.x).abs();
-            let cover = (half_width + 0.5 - across).clamp(0.0, 1.0) as f32;
+            let p = Vector2::new((i % w) as f64, (i / w) as f64);
+            let cover = (inside(p) + 0.5).clamp(0.0, 1.0) as f32;
             *v += strength * cover * (level - *v);
         }
         GreyImage::new(w, h, pixels).unwrap()
     }
+
+    /// The occluder tests' marker (W 33, 10-µm period, ID [`OCCLUDED_ID`]) and its pose.
+    fn occluded_marker() -> (HpCodeLayout, Pose) {
+        let layout = HpCodeLayout::from_code_size(10.0, 33)
+            .unwrap()
+            .with_id(OCCLUDED_ID)
+            .unwrap();
+        (layout, Pose::planar(2.0, -1.0, 0.2, 0.8))
+    }
+
+    const OCCLUDED_ID: u64 = 0b1_0110_0101;
 
     #[test]
     fn a_fibre_over_an_empty_id_cell_never_reads_as_a_dot() {
@@ -1012,12 +1123,7 @@ mod tests {
         // enough of the cell to read as a dot there: another marker's ID. A dot is a blob
         // whose surroundings are background; a fibre runs on beyond the cell on both sides.
         // Sharp and noise-free, then blurred (0.12 period) with 3 % noise at 60 % contrast.
-        let id = 0b1_0110_0101u64;
-        let layout = HpCodeLayout::from_code_size(10.0, 33)
-            .unwrap()
-            .with_id(id)
-            .unwrap();
-        let pose = Pose::planar(2.0, -1.0, 0.2, 0.8);
+        let (id, (layout, pose)) = (OCCLUDED_ID, occluded_marker());
         let blurred = RenderOptions {
             blur_sigma: 1.5,
             noise_std: 0.03,
@@ -1052,6 +1158,50 @@ mod tests {
                             }
                         }
                     }
+                }
+            }
+        }
+        assert!(wrong.is_empty(), "{} wrong: {wrong:.2?}", wrong.len());
+    }
+
+    /// `image` with a round blob of `radius` periods around the point `(r, c)` of `grid`,
+    /// blended `strength` of the way towards `level`.
+    fn blob(
+        image: &GreyImage,
+        grid: &DotGrid,
+        (r, c): (f64, f64),
+        radius: f64,
+        (level, strength): (f32, f32),
+    ) -> GreyImage {
+        let (center, radius) = (grid.at(r, c), radius * grid.step_x.norm());
+        occluded(image, (level, strength), |p| radius - (p - center).norm())
+    }
+
+    #[test]
+    fn a_blob_hiding_an_id_dot_and_its_neighbours_in_part_is_refused() {
+        // A blob at the background's level 0.8–1.05 period in radius hides a present ID dot
+        // whole and reaches into the dots around it, whose upper level ignores it: the ID
+        // dot reads missing, another marker's ID. Its neighbours' centres show the blob.
+        let (id, (layout, pose)) = (OCCLUDED_ID, occluded_marker());
+        let options = RenderOptions {
+            blur_sigma: 1.2,
+            noise_std: 0.01,
+            seed: 3,
+            ..RenderOptions::new(300, 280)
+        };
+        let image = render(&layout, &pose, &options).unwrap();
+        let grid = grid_for(&pose, 10.0, 17, &image);
+        let background = options.background;
+        let mut wrong = Vec::new();
+        // Blobs that reach the centre of the reference dot or of the ID dots beside it (a
+        // smaller one leaves the image of another marker: no reader can tell them apart).
+        for column in 4..=12 {
+            for (across, radius) in [(0.3, 0.8), (0.3, 0.9), (0.15, 0.95), (0.0, 1.05)] {
+                let at = (across, column as f64);
+                let spoiled = blob(&image, &grid, at, radius, (background, 0.95));
+                let r = read_id(&spoiled, Polarity::BrightDots, &grid).unwrap();
+                if r.id != id && r.confidence >= 0.2 {
+                    wrong.push((column, across, radius, r.id, r.confidence));
                 }
             }
         }
