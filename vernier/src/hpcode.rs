@@ -27,7 +27,9 @@ mod grouping;
 pub(crate) mod marker_id;
 
 pub use finders::Finder;
-pub use grouping::{group_finders, pair_hypotheses, FinderTriple};
+pub use grouping::{
+    candidate_triples, disjoint_triples, group_finders, pair_hypotheses, FinderTriple,
+};
 
 use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
@@ -42,6 +44,9 @@ use std::f64::consts::{FRAC_PI_2, PI, TAU};
 const MIN_PRECHECK: f64 = 0.7;
 /// Most two-finder hypotheses tried per image (each costs one window analysis).
 const MAX_HYPOTHESES: usize = 48;
+/// Rounds of finder triples measured ([`HpCodeDetector::detect`]): the disjoint best-fitting
+/// ones, then those whose finders the triples without a marker freed, twice.
+const GROUPING_ROUNDS: usize = 3;
 /// Smallest fraction of the marker's dots and gaps that must look right
 /// ([`marker_id::grid_support`]); dust and hair may spoil the rest.
 const MIN_GRID_SUPPORT: f64 = 0.75;
@@ -342,21 +347,30 @@ impl HpCodeDetector {
     /// without markers gives an empty list. Markers sharing an ID are all returned.
     pub fn detect(&mut self, image: &GreyImage) -> Result<Vec<HpCodeMarker>> {
         let finders = self.find_finders(image);
-        let triples = group_finders(&finders, self.params.code_size);
-        let mut markers = self.measure_all(image, &triples)?;
+        let candidates = candidate_triples(&finders, self.params.code_size);
+        let mut tried = vec![false; candidates.len()];
+        let mut markers: Vec<HpCodeMarker> = Vec::new();
+        // Rounds of disjoint triples, best fit first: a triple that gives no marker frees its
+        // finders for the next round's. Across two markers, finders can fit a right angle with
+        // equal legs better than a marker's own, which perspective makes unequal.
+        for _ in 0..GROUPING_ROUNDS {
+            let taken = taken_finders(&finders, &markers);
+            let triples: Vec<FinderTriple> = disjoint_triples(&candidates, &taken, &mut tried)
+                .into_iter()
+                .map(|k| candidates[k].0)
+                // Another triple of a marker found (a finder read twice).
+                .filter(|t| !near_a_marker(&markers, t))
+                .collect();
+            if triples.is_empty() {
+                break;
+            }
+            markers.extend(self.measure_all(image, &triples)?);
+        }
         // Markers with a finder missing (dust, damage): hypotheses from the finders left over,
         // each kept only when its grid and ID confirm it.
-        let used: Vec<bool> = finders
-            .iter()
-            .map(|f| markers.iter().any(|m| m.finders.uses(f)))
-            .collect();
+        let used = taken_finders(&finders, &markers);
         for triple in pair_hypotheses(&finders, self.params.code_size, &used, MAX_HYPOTHESES) {
-            let coarse = triple.center();
-            let module = triple.module_px;
-            if markers
-                .iter()
-                .any(|m| (m.origin_px - coarse).norm() < 4.0 * module)
-            {
+            if near_a_marker(&markers, &triple) {
                 continue;
             }
             // Sequential: each accepted hypothesis hides the ones near it.
@@ -440,6 +454,22 @@ impl HpCodeDetector {
         }
         Ok(markers)
     }
+}
+
+/// Per finder, whether one of `markers` uses it.
+fn taken_finders(finders: &[Finder], markers: &[HpCodeMarker]) -> Vec<bool> {
+    finders
+        .iter()
+        .map(|f| markers.iter().any(|m| m.finders.uses(f)))
+        .collect()
+}
+
+/// Whether the centre of `triple` lies within four modules of a marker of `markers`.
+fn near_a_marker(markers: &[HpCodeMarker], triple: &FinderTriple) -> bool {
+    let (center, module) = (triple.center(), triple.module_px);
+    markers
+        .iter()
+        .any(|m| (m.origin_px - center).norm() < 4.0 * module)
 }
 
 impl Measure<'_> {

@@ -92,10 +92,22 @@ impl FinderTriple {
     }
 }
 
-/// Marker triples among `finders` for markers about `code_size` (W) cells wide, best first.
-/// `right`/`bottom` are assigned so that `bottom` is 90° clockwise on screen from `right`
-/// (a marker seen from the front); a mirrored marker is recognised later from its ID row.
+/// Marker triples among `finders` for markers about `code_size` (W) cells wide, best first,
+/// none sharing a finder ([`candidate_triples`], [`disjoint_triples`]). `right`/`bottom` are
+/// assigned so that `bottom` is 90° clockwise on screen from `right` (a marker seen from the
+/// front); a mirrored marker is recognised later from its ID row.
 pub fn group_finders(finders: &[Finder], code_size: usize) -> Vec<FinderTriple> {
+    let candidates = candidate_triples(finders, code_size);
+    let mut tried = vec![false; candidates.len()];
+    disjoint_triples(&candidates, &vec![false; finders.len()], &mut tried)
+        .into_iter()
+        .map(|k| candidates[k].0)
+        .collect()
+}
+
+/// Every triple among `finders` whose geometry fits a marker about `code_size` (W) cells wide,
+/// with the indices of its finders, best fit first.
+pub fn candidate_triples(finders: &[Finder], code_size: usize) -> Vec<(FinderTriple, [usize; 3])> {
     let legs = LegRange::new(code_size);
     let mut triples = Vec::new();
     let n = finders.len();
@@ -119,16 +131,28 @@ pub fn group_finders(finders: &[Finder], code_size: usize) -> Vec<FinderTriple> 
         }
     }
     triples.sort_by(|x, y| x.0.misfit.total_cmp(&y.0.misfit));
-    let mut used = vec![false; n];
+    triples
+}
+
+/// The best-fitting of `candidates` ([`candidate_triples`]) not yet `tried`, none sharing a
+/// finder with another or using one `taken`, greedily in their order; each is marked tried.
+/// Returns their indices in `candidates`.
+pub fn disjoint_triples(
+    candidates: &[(FinderTriple, [usize; 3])],
+    taken: &[bool],
+    tried: &mut [bool],
+) -> Vec<usize> {
+    let mut used = taken.to_vec();
     let mut kept = Vec::new();
-    for (t, ids) in triples {
-        if ids.iter().any(|&i| used[i]) {
+    for (k, (_, ids)) in candidates.iter().enumerate() {
+        if tried[k] || ids.iter().any(|&i| used.get(i).copied().unwrap_or(true)) {
             continue;
         }
-        for i in ids {
+        for &i in ids {
             used[i] = true;
         }
-        kept.push(t);
+        tried[k] = true;
+        kept.push(k);
     }
     kept
 }
@@ -302,5 +326,34 @@ mod tests {
             .all(|t| t.corner != Vector2::new(100.0, 100.0)
                 && t.corner != Vector2::new(500.0, 300.0)));
         assert_eq!(group_finders(&finders, 37).len(), 2);
+    }
+
+    #[test]
+    fn later_rounds_offer_the_triples_whose_finders_are_free() {
+        // A marker's three finders (legs 8 % apart) and a fourth finder that makes
+        // better-fitting triples with two of them: the first round takes the best alone;
+        // once the triples before it gave no marker, the marker's own is offered.
+        let finders = vec![
+            finder(100.0, 100.0, 28.0),
+            finder(200.0, 100.0, 28.0),
+            finder(100.0, 208.0, 28.0),
+            finder(100.0, 0.0, 28.0),
+        ];
+        let candidates = candidate_triples(&finders, 33);
+        let mut tried = vec![false; candidates.len()];
+        let free = vec![false; finders.len()];
+        let first = disjoint_triples(&candidates, &free, &mut tried);
+        assert_eq!(first.len(), 1);
+        assert!(candidates[first[0]].1.contains(&3), "{candidates:?}");
+        let own = |k: &usize| candidates[*k].1.iter().all(|&i| i < 3);
+        assert!(!first.iter().any(own));
+        let later: Vec<usize> = (0..2)
+            .flat_map(|_| disjoint_triples(&candidates, &free, &mut tried))
+            .collect();
+        assert!(later.iter().any(own), "{candidates:?}");
+        // Finders taken by a marker found are offered to no later triple.
+        let mut tried = vec![false; candidates.len()];
+        let taken = vec![true, true, false, false];
+        assert!(disjoint_triples(&candidates, &taken, &mut tried).is_empty());
     }
 }
