@@ -343,9 +343,6 @@ impl<'a> EdgeSamples<'a> {
                 .try_fold(f64::INFINITY, |least, b| Some(least.min(b?)));
             least.map(|l| (l - 0.5 * (self.hi + self.lo)) / self.half())
         };
-        // Each reference dot against the seven around it (whose median an occluder that
-        // hides three of them does not move, and which follow the illumination), lifted by
-        // the references' own scatter (noise).
         let hiding = self.hiding_margins(signed);
         let ridges = excess(signed, |i| ridge(i, 0.0), |i| ridge(i, 1.0));
         let bridges = excess(signed, |i| bridge(i, 0.0), |i| bridge(i, 1.0));
@@ -377,6 +374,9 @@ impl<'a> EdgeSamples<'a> {
     /// [`facing_level`]: EdgeSamples::facing_level
     fn hiding_margins(&self, signed: &[f64]) -> Vec<f64> {
         let n = signed.len();
+        if signed.iter().all(|&s| s >= 0.0) {
+            return vec![f64::INFINITY; n];
+        }
         let references: Vec<f64> = (0..n)
             .map(|j| self.signed_within(j, 3, self.present[j]))
             .collect();
