@@ -389,10 +389,14 @@ impl<'a> EdgeSamples<'a> {
             values.iter().copied().filter(|v| v.is_finite()).collect()
         };
         let (_, facing_allowance) = median_and_allowance(&finite(&facing));
+        // Per column, the lowest level an intact side may have there: the median of the seven
+        // references' around it, less their allowance.
+        let floor: Vec<f64> = (0..n)
+            .map(|j| median_or_nan(&mut finite(&facing[self.within(j, 3)])) - facing_allowance)
+            .collect();
         // `1 − 2·shortfall` of a side's level beside column j (1 where not judged: NaN).
         let intact_side = |j: usize, level: f64| {
-            let around = median_or_nan(&mut finite(&facing[self.within(j, 3)]));
-            let shortfall = around - facing_allowance - level;
+            let shortfall = floor[j] - level;
             match shortfall.is_nan() {
                 true => 1.0,
                 false => 1.0 - 2.0 * shortfall.max(0.0),
