@@ -81,6 +81,25 @@ impl ThresholdMap {
         self.choose_thresholds();
     }
 
+    /// One threshold, `threshold` (intensity units), for every block of `image`: a global
+    /// threshold, for a scan of levels over a window small enough to be one structure
+    /// (the finder search's blurred-finder rescue). [`Regions::label`] then takes level 0.
+    pub fn compute_uniform(&mut self, image: &GreyImage, threshold: f32) {
+        let w = image.width();
+        let (bw, bh) = (w.div_ceil(BLOCK), image.height().div_ceil(BLOCK));
+        self.blocks = (bw, bh);
+        self.min.clear();
+        self.min.resize(bw * bh, f32::INFINITY);
+        self.max.clear();
+        self.max.resize(bw * bh, f32::NEG_INFINITY);
+        block_extremes(image.pixels(), w, &mut self.min, &mut self.max);
+        self.floor = 0.0;
+        self.low.clear();
+        self.low.resize(bw * bh, threshold);
+        self.range.clear();
+        self.range.resize(bw * bh, 0.0);
+    }
+
     /// The contrast floor [`ThresholdMap::compute`] derives for `image` (6 noise deviations, at
     /// least 0.015), from the 8×8 blocks of every few block rows (a sample is enough for the
     /// quietest tenth; large images are read only in part).

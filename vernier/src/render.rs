@@ -361,7 +361,7 @@ fn clipped_area(quad: &[Point2<f64>; 4], r: &Rect) -> f64 {
 }
 
 /// Separable Gaussian blur, σ in pixels, edges replicated.
-fn gaussian_blur(pixels: &mut [f32], w: usize, h: usize, sigma: f64) {
+pub(crate) fn gaussian_blur(pixels: &mut [f32], w: usize, h: usize, sigma: f64) {
     let radius = (4.0 * sigma).ceil() as i64;
     let kernel: Vec<f32> = (-radius..=radius)
         .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp() as f32)

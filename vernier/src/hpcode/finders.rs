@@ -16,11 +16,16 @@
 //! itself is not needed: it is whatever encloses the gap, so a ring touching other structures
 //! (the edge of the part) or imaged as two outlines still counts. Text, grids, stripes and the
 //! dot grid have no such nesting; what else might is rejected by the marker geometry and grid.
+//!
+//! A blurred finder whose gap no level of the local range opens is read in a window at a
+//! threshold between its own gap's and ring's levels ([`rescue`]).
 
 use crate::binarize::{Region, Regions, ThresholdMap, BLOCK};
 use crate::grey_image::{GreyImage, Polarity};
 use nalgebra::Vector2;
 use std::borrow::Cow;
+
+mod rescue;
 
 /// Images (and windows) with at least this many pixels are labelled at their threshold levels
 /// in parallel.
@@ -229,11 +234,14 @@ fn scan_windows(
     (finders, small)
 }
 
-/// Buffers of one labelling: the threshold map and one region set per threshold level.
+/// Buffers of one labelling: the threshold map and one region set per threshold level, and
+/// those of the blurred-finder rescue's window scans.
 #[derive(Default)]
 struct Labelling {
     thresholds: ThresholdMap,
     regions: [Regions; LEVELS.len()],
+    window_thresholds: ThresholdMap,
+    window_regions: Regions,
 }
 
 impl Labelling {
@@ -253,13 +261,18 @@ impl Labelling {
         let map = &self.thresholds;
         let want_small = small.is_some();
         let (ox, oy) = (origin.0 as u32, origin.1 as u32);
-        let scan = |(labels, level): (&mut Regions, f32)| -> (Vec<Finder>, Vec<[u32; 4]>) {
+        let scan = |(labels, level): (&mut Regions, f32)| -> LevelScan {
             labels.label(image, map, level);
             let regions = &labels.regions;
-            let finders = regions
-                .iter()
-                .flat_map(|c| finders_at(regions, c).into_iter().flatten())
-                .collect();
+            let mut finders = Vec::new();
+            let mut unexplained = Vec::new();
+            for c in regions {
+                let [a, b] = finders_at(regions, c);
+                if a.is_none() && b.is_none() {
+                    unexplained.extend(rescue::Unexplained::of(c));
+                }
+                finders.extend(a.into_iter().chain(b));
+            }
             let small = regions
                 .iter()
                 .filter(|r| want_small && might_be_small_centre(r))
@@ -272,33 +285,47 @@ impl Labelling {
                     ]
                 })
                 .collect();
-            (finders, small)
+            (finders, small, unexplained)
         };
         let jobs = self.regions.iter_mut().zip(LEVELS);
-        let results: Vec<(Vec<Finder>, Vec<[u32; 4]>)> =
-            if image.width() * image.height() >= PARALLEL_MIN_PIXELS {
-                std::thread::scope(|s| {
-                    let handles: Vec<_> = jobs.map(|job| s.spawn(move || scan(job))).collect();
-                    handles
-                        .into_iter()
-                        .map(|h| h.join().unwrap_or_default())
-                        .collect()
-                })
-            } else {
-                jobs.map(scan).collect()
-            };
+        let results: Vec<LevelScan> = if image.width() * image.height() >= PARALLEL_MIN_PIXELS {
+            std::thread::scope(|s| {
+                let handles: Vec<_> = jobs.map(|job| s.spawn(move || scan(job))).collect();
+                handles
+                    .into_iter()
+                    .map(|h| h.join().unwrap_or_default())
+                    .collect()
+            })
+        } else {
+            jobs.map(scan).collect()
+        };
         let mut finders = Vec::new();
         let mut boxes = Vec::new();
-        for (f, b) in results {
+        let mut unexplained = Vec::new();
+        for (f, b, u) in results {
             finders.extend(f);
             boxes.extend(b);
+            unexplained.extend(u);
         }
         if let Some(out) = small {
             out.extend(boxes);
         }
+        let floor = self.thresholds.floor();
+        for candidate in rescue::candidates(unexplained, &finders) {
+            finders.extend(rescue::blurred_finder(
+                &mut self.window_thresholds,
+                &mut self.window_regions,
+                image,
+                &candidate,
+                floor,
+            ));
+        }
         finders
     }
 }
+
+/// Finders, small-region boxes and unexplained regions of one threshold level.
+type LevelScan = (Vec<Finder>, Vec<[u32; 4]>, Vec<rescue::Unexplained>);
 
 /// A rectangle of a pyramid level, its pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -691,6 +718,57 @@ mod tests {
     }
 
     #[test]
+    fn finds_a_blurred_finder_whose_gap_is_grey() {
+        // As the printed finders of code31.jpg: ring and centre at 1, the gap grey (0.3), dark
+        // surround on two sides, a dot grid (dark dots on 0.65) on the other two, blur of 0.6
+        // module. The blur lifts the gap over the lower levels of the local ranges while the
+        // corners of the thin ring sink below the upper ones: no level of the local ranges
+        // opens the gap and closes the ring; one between the gap's and the ring's own does.
+        let m = 6.0;
+        let size = (14.0 * m) as usize + 20;
+        let c = size as f64 / 2.0;
+        let mut px = vec![0.0f32; size * size];
+        for (i, v) in px.iter_mut().enumerate() {
+            let (u, w) = ((i % size) as f64 - c, (i / size) as f64 - c);
+            if u.abs() < 3.5 * m && w.abs() < 3.5 * m {
+                *v = 0.3;
+            } else if (u > 4.5 * m && w > -3.5 * m) || (w > 4.5 * m && u > -3.5 * m) {
+                let (a, b) = (
+                    (u / (2.0 * m)).rem_euclid(1.0),
+                    (w / (2.0 * m)).rem_euclid(1.0),
+                );
+                let dot = (a - 0.5).abs() < 0.25 && (b - 0.5).abs() < 0.25;
+                *v = if dot { 0.15 } else { 0.65 };
+            }
+        }
+        paint_finder(&mut px, size, c, c, m);
+        crate::render::gaussian_blur(&mut px, size, size, 0.6 * m);
+        let image = GreyImage::new(size, size, px).unwrap();
+        for finder in the_finder_of_each_polarity(&image, m) {
+            let expected = Vector2::new(c - 0.5, c - 0.5);
+            assert!((finder.center - expected).norm() < 0.6, "{finder:?}");
+        }
+    }
+
+    /// The one finder of module `m` (±10 %) found in `image` with bright material and in its
+    /// inverse with dark material.
+    fn the_finder_of_each_polarity(image: &GreyImage, m: f64) -> [Finder; 2] {
+        [
+            (Polarity::BrightDots, image.clone()),
+            (Polarity::DarkDots, image.inverted()),
+        ]
+        .map(|(polarity, view)| {
+            let found = FinderScanner::default().find(&view, None);
+            let real: Vec<&Finder> = found
+                .iter()
+                .filter(|f| f.polarity == polarity && (f.module_px / m - 1.0).abs() < 0.1)
+                .collect();
+            assert_eq!(real.len(), 1, "module {m}, {polarity:?}: {found:?}");
+            *real[0]
+        })
+    }
+
+    #[test]
     fn finds_a_finder_whose_centre_does_not_stand_out_of_its_gap() {
         // Ring at 1, centre at the gap's level 0 (a dim specular centre; gap and centre
         // saturated alike once inverted): the centre is part of the gap at every threshold
@@ -708,22 +786,10 @@ mod tests {
                     *v = 0.0;
                 }
             }
-            for (polarity, view) in [
-                (Polarity::BrightDots, image.clone()),
-                (Polarity::DarkDots, image.inverted()),
-            ] {
-                let found = FinderScanner::default().find(&view, None);
-                let real: Vec<&Finder> = found
-                    .iter()
-                    .filter(|f| f.polarity == polarity && (f.module_px / m - 1.0).abs() < 0.1)
-                    .collect();
-                assert_eq!(real.len(), 1, "module {m}, {polarity:?}: {found:?}");
-                assert!(real[0].centre_hidden);
-                assert!(
-                    (real[0].center - Vector2::new(c - 0.5, c - 0.5)).norm() < 0.6,
-                    "m {m} {polarity:?}: {:?}",
-                    real[0]
-                );
+            for finder in the_finder_of_each_polarity(&image, m) {
+                assert!(finder.centre_hidden);
+                let expected = Vector2::new(c - 0.5, c - 0.5);
+                assert!((finder.center - expected).norm() < 0.6, "m {m}: {finder:?}");
             }
         }
     }

@@ -1,0 +1,261 @@
+//! Blurred-finder rescue (docs/design.md#hp-finders): finders whose gap no level of the local
+//! range opens.
+//!
+//! The three levels of the local range ([`super::LEVELS`]) are fractions of a range that a
+//! finder's centre and its surround set. Blur of about half a module lifts a grey gap (printed
+//! finders, `code31.jpg`) above the lower levels while the corners of the one-module ring sink
+//! below the upper ones, so no level opens the gap and closes the ring, although one between
+//! the gap's and the ring's own levels still does. The centre stays a compact region at some
+//! level. Each such region that no reading made a finder, and that no region like it crowds
+//! (as the dots of a dot grid crowd each other), is looked at along rays: where nearly every
+//! ray leaves it into a gap and then meets a ring, a window around it is binarised at one
+//! global threshold between the most material gap and the least material ring, and read as
+//! the other finders are ([`super::finders_at`]).
+
+use super::{centroid, compact, finders_at, Finder, MIN_CENTER_AREA, MIN_SPACING};
+use crate::binarize::{Region, Regions, ThresholdMap};
+use crate::grey_image::{GreyImage, Polarity};
+use nalgebra::Vector2;
+
+/// Half-side of the rescue's window, candidate modules: the ring's outer edge at 3.5 modules,
+/// with room for a centre read a third too small.
+const REACH: f64 = 5.5;
+/// Rays of the profile around a candidate centre.
+const RAYS: usize = 8;
+/// Rays that must show a gap and a ring (one may cross dust, a hair, a scratch).
+const MIN_RAYS: usize = 7;
+/// Samples per candidate module along a ray …
+const STEPS_PER_MODULE: f64 = 4.0;
+/// … out to [`REACH`].
+const PROFILE_STEPS: usize = (REACH * STEPS_PER_MODULE) as usize;
+/// Two regions are alike in size when their sides differ by less than this factor.
+const SIZE_ALIKE: f64 = 1.5;
+/// A finder found already explains a region of its colour within one of its modules whose
+/// module estimate is within this fraction of its own.
+const SAME_MODULE: f64 = 0.5;
+
+/// A closed, compact region that no reading made a finder: maybe the centre of a finder whose
+/// blurred gap did not open at any of the local levels.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Unexplained {
+    center: Vector2<f64>,
+    /// `√(filled area)`, pixels: about three modules if it is a finder's centre.
+    side: f64,
+    bright: bool,
+}
+
+impl Unexplained {
+    /// `r` as a candidate centre, if it is closed, compact and large enough to be one.
+    pub(super) fn of(r: &Region) -> Option<Unexplained> {
+        (!r.open && r.filled_area >= MIN_CENTER_AREA && compact(r)).then(|| Unexplained {
+            center: centroid(r),
+            side: r.filled_area.sqrt(),
+            bright: r.bright,
+        })
+    }
+
+    fn module(&self) -> f64 {
+        self.side / 3.0
+    }
+
+    /// +1 for bright material, −1 for dark: material levels are `sign · intensity`.
+    fn sign(&self) -> f32 {
+        if self.bright {
+            1.0
+        } else {
+            -1.0
+        }
+    }
+
+    fn polarity(&self) -> Polarity {
+        if self.bright {
+            Polarity::BrightDots
+        } else {
+            Polarity::DarkDots
+        }
+    }
+}
+
+/// The unexplained regions worth a rescue: one per place, colour and size (the three levels
+/// see the same centre), none where a finder of that colour and size was found, and none
+/// crowded by regions like it, as the dots of a dot grid are (a finder's centre has none
+/// nearer than [`MIN_SPACING`] modules, as in [`super::crowded`]).
+pub(super) fn candidates(all: Vec<Unexplained>, found: &[Finder]) -> Vec<Unexplained> {
+    let index = SpatialIndex::new(&all);
+    let alike = |a: &Unexplained, b: &Unexplained| {
+        a.bright == b.bright && a.side < SIZE_ALIKE * b.side && b.side < SIZE_ALIKE * a.side
+    };
+    let mut kept: Vec<Unexplained> = Vec::new();
+    for (i, u) in all.iter().enumerate() {
+        let explained = found.iter().any(|f| {
+            f.polarity == u.polarity()
+                && (f.module_px / u.module() - 1.0).abs() < SAME_MODULE
+                && (f.center - u.center).norm() < f.module_px
+        });
+        if explained {
+            continue;
+        }
+        // Alike regions nearer than a module are the same region at another level: the first
+        // one stands for them.
+        let crowded_or_repeated =
+            index.any_near(&all, u.center, MIN_SPACING * u.module(), |j, v| {
+                j != i && alike(u, v) && ((v.center - u.center).norm() >= u.module() || j < i)
+            });
+        if !crowded_or_repeated {
+            kept.push(*u);
+        }
+    }
+    kept
+}
+
+/// The finder whose centre `candidate` may be, read from a window around it binarised at one
+/// global threshold, mid-way between the most material gap and the least material ring that
+/// its [`ring_profile`] shows. `thresholds` and `labels` are reused buffers.
+pub(super) fn blurred_finder(
+    thresholds: &mut ThresholdMap,
+    labels: &mut Regions,
+    image: &GreyImage,
+    candidate: &Unexplained,
+    floor: f32,
+) -> Option<Finder> {
+    let (gap, ring) = ring_profile(image, candidate, floor)?;
+    let reach = REACH * candidate.module() + 2.0;
+    let col0 = (candidate.center.x - reach).floor().max(0.0) as usize;
+    let row0 = (candidate.center.y - reach).floor().max(0.0) as usize;
+    let col1 = ((candidate.center.x + reach).ceil() as usize).min(image.width());
+    let row1 = ((candidate.center.y + reach).ceil() as usize).min(image.height());
+    let window = image
+        .crop(col0, row0, col1.checked_sub(col0)?, row1.checked_sub(row0)?)
+        .ok()?;
+    thresholds.compute_uniform(&window, candidate.sign() * 0.5 * (gap + ring));
+    labels.label(&window, thresholds, 0.0);
+    let regions = &labels.regions;
+    let origin = Vector2::new(col0 as f64, row0 as f64);
+    regions
+        .iter()
+        .filter(|r| r.bright == candidate.bright)
+        .filter_map(|r| finders_at(regions, r)[0])
+        .map(|f| Finder {
+            center: f.center + origin,
+            ..f
+        })
+        .filter(|f| (f.center - candidate.center).norm() < candidate.module())
+        .max_by(|a, b| a.score.total_cmp(&b.score))
+}
+
+/// The material levels `(gap, ring)` around a candidate centre: the most material gap and the
+/// least material ring over the rays that leave the centre into a gap at least `floor / 2`
+/// less material than the centre and then meet a ring at least as much more material than the
+/// gap, within [`REACH`]. `None` when fewer than [`MIN_RAYS`] rays do, when no one threshold
+/// lies between every gap and every ring, or when a ray leaves the image.
+fn ring_profile(image: &GreyImage, c: &Unexplained, floor: f32) -> Option<(f32, f32)> {
+    let sign = c.sign();
+    let step = c.module() / STEPS_PER_MODULE;
+    let centre = sign * image.bilinear(c.center.x, c.center.y)?;
+    let depth = 0.5 * floor;
+    let (mut gap, mut ring, mut missed) = (f32::NEG_INFINITY, f32::INFINITY, 0);
+    for k in 0..RAYS {
+        let angle = std::f64::consts::TAU * k as f64 / RAYS as f64;
+        let (dx, dy) = (angle.cos() * step, angle.sin() * step);
+        let mut profile = [0.0f32; PROFILE_STEPS];
+        for (j, v) in profile.iter_mut().enumerate() {
+            let reach = (j + 1) as f64;
+            *v = sign * image.bilinear(c.center.x + dx * reach, c.center.y + dy * reach)?;
+        }
+        match gap_and_ring(&profile, depth) {
+            Some((g, r)) if centre - g >= depth => {
+                gap = gap.max(g);
+                ring = ring.min(r);
+            }
+            // Most candidates (clutter) fail here on their first rays.
+            _ => {
+                missed += 1;
+                if missed > RAYS - MIN_RAYS {
+                    return None;
+                }
+            }
+        }
+    }
+    (gap < ring).then_some((gap, ring))
+}
+
+/// The first valley of `profile` (material levels outwards from a centre) and the peak after
+/// it, each confirmed by a change of at least `depth` (hysteresis: noise ripples on the
+/// centre's plateau are no valley).
+fn gap_and_ring(profile: &[f32], depth: f32) -> Option<(f32, f32)> {
+    let mut gap = f32::INFINITY;
+    let rise = profile.iter().position(|&v| {
+        gap = gap.min(v);
+        v - gap >= depth
+    })?;
+    let mut ring = f32::NEG_INFINITY;
+    for &v in &profile[rise..] {
+        ring = ring.max(v);
+        if ring - v >= depth {
+            break;
+        }
+    }
+    Some((gap, ring))
+}
+
+/// Unexplained regions bucketed by position, for neighbour queries.
+struct SpatialIndex {
+    cols: usize,
+    rows: usize,
+    buckets: Vec<Vec<usize>>,
+}
+
+impl SpatialIndex {
+    /// Bucket side, pixels.
+    const CELL: f64 = 32.0;
+
+    fn new(all: &[Unexplained]) -> Self {
+        let extent = all.iter().fold((0.0f64, 0.0f64), |(x, y), u| {
+            (x.max(u.center.x), y.max(u.center.y))
+        });
+        let (cols, rows) = (
+            (extent.0 / Self::CELL) as usize + 1,
+            (extent.1 / Self::CELL) as usize + 1,
+        );
+        let mut buckets = vec![Vec::new(); cols * rows];
+        for (i, u) in all.iter().enumerate() {
+            let (c, r) = Self::bucket(u.center);
+            buckets[r.min(rows - 1) * cols + c.min(cols - 1)].push(i);
+        }
+        SpatialIndex {
+            cols,
+            rows,
+            buckets,
+        }
+    }
+
+    fn bucket(p: Vector2<f64>) -> (usize, usize) {
+        (
+            (p.x.max(0.0) / Self::CELL) as usize,
+            (p.y.max(0.0) / Self::CELL) as usize,
+        )
+    }
+
+    /// Whether `test(j, &all[j])` holds for a region `j` within `radius` of `p`.
+    fn any_near(
+        &self,
+        all: &[Unexplained],
+        p: Vector2<f64>,
+        radius: f64,
+        test: impl Fn(usize, &Unexplained) -> bool,
+    ) -> bool {
+        let reach = Vector2::repeat(radius);
+        let (c0, r0) = Self::bucket(p - reach);
+        let (c1, r1) = Self::bucket(p + reach);
+        for r in r0..=r1.min(self.rows - 1) {
+            for c in c0..=c1.min(self.cols - 1) {
+                for &j in &self.buckets[r * self.cols + c] {
+                    if (all[j].center - p).norm() < radius && test(j, &all[j]) {
+                        return true;
+                    }
+                }
+            }
+        }
+        false
+    }
+}
