@@ -33,7 +33,9 @@ pub use grouping::{
 
 use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
-use crate::phase::{wrap_angle, FieldFit, LobePrior, PhaseAnalysis, PhaseEngine, PhaseParams};
+use crate::phase::{
+    wrap_angle, FieldFit, LobePrior, PhaseAnalysis, PhaseEngine, PhaseParams, Rival,
+};
 use crate::pose::{rotate2, Pose};
 use finders::FinderScanner;
 use nalgebra::Vector2;
@@ -636,8 +638,12 @@ impl Measure<'_> {
         let image_center = Vector2::new(icx as f64, icy as f64);
         let at = grid.dots.center - image_center;
         let refined = if self.params.field_fit {
-            fine::refine_on_field(image, &grid, reading.id)
-                .filter(|(_, fit)| fit.beats_window(analysis.phase_std, at.x, at.y))
+            let rival = Rival {
+                phase_std: analysis.phase_std,
+                at: (at.x, at.y),
+            };
+            fine::refine_on_field(image, &grid, reading.id, rival)
+                .filter(|(_, fit)| fit.beats(&rival))
         } else {
             None
         };

@@ -4,8 +4,8 @@
 use crate::error::Result;
 use crate::grey_image::{GreyImage, Polarity};
 use crate::phase::{
-    fit_dot_field, wrap_to_pi, FieldFit, NodeMask, PhaseAnalysis, PhaseEngine, PhaseParams,
-    PhasePlane,
+    fit_dot_field_against, wrap_to_pi, FieldFit, NodeMask, PhaseAnalysis, PhaseEngine, PhaseParams,
+    PhasePlane, Rival,
 };
 use crate::pose::Pose;
 use nalgebra::{Matrix2, Vector2};
@@ -112,8 +112,11 @@ impl PeriodicDetector {
         let image = &*image.as_bright_dots(self.params.polarity);
         let analysis = self.engine.analyze(image, &self.params.phase)?;
         let field = if self.params.field_fit {
-            fit_whole_image(image, &analysis.planes)
-                .filter(|fit| fit.beats_window(analysis.phase_std, 0.0, 0.0))
+            let rival = Rival {
+                phase_std: analysis.phase_std,
+                at: (0.0, 0.0),
+            };
+            fit_whole_image(image, &analysis.planes, rival).filter(|fit| fit.beats(&rival))
         } else {
             None
         };
@@ -137,8 +140,9 @@ impl PeriodicDetector {
 }
 
 /// The grid's planes refined on every pixel of `image` (docs/design.md#field-fit): every node
-/// within one period of the image is a dot, and no cell is discrepant inside that span.
-fn fit_whole_image(image: &GreyImage, planes: &[PhasePlane; 2]) -> Option<FieldFit> {
+/// within one period of the image is a dot, and no cell is discrepant inside that span. `None`
+/// where the fit fails or cannot beat `rival`, the window's fit.
+fn fit_whole_image(image: &GreyImage, planes: &[PhasePlane; 2], rival: Rival) -> Option<FieldFit> {
     let corners = image.corners_from_center();
     let span = |p: &PhasePlane| {
         let u = corners.map(|(x, y)| p.at(x, y) / TAU);
@@ -151,7 +155,7 @@ fn fit_whole_image(image: &GreyImage, planes: &[PhasePlane; 2]) -> Option<FieldF
     let mask = NodeMask::from_cells(k1.clone(), k2.clone(), |v1, v2| {
         v1.rem_euclid(2) == 0 && v2.rem_euclid(2) == 0 && inside(v1, &k1) && inside(v2, &k2)
     });
-    fit_dot_field(image, *planes, &mask)
+    fit_dot_field_against(image, *planes, &mask, Some(rival))
 }
 
 /// Pose of the grid from its two planes (image frame; docs/design.md#periodic): the grid

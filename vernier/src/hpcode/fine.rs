@@ -13,7 +13,7 @@ use super::grouping::FinderTriple;
 use super::marker_id::DotGrid;
 use crate::grey_image::GreyImage;
 use crate::layout::HpCodeLayout;
-use crate::phase::{fit_dot_field, wrap_to_pi, FieldFit, NodeMask, PhasePlane};
+use crate::phase::{fit_dot_field_against, wrap_to_pi, FieldFit, NodeMask, PhasePlane, Rival};
 use nalgebra::{Matrix2, Vector2};
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
@@ -178,11 +178,13 @@ struct FinderView {
 /// `id` is the decoded one: it says which dots exist; the finders are where `grid` says (a
 /// mirrored marker's grid reads its layout as from the front). The fit weighs every drawn
 /// dot and keeps clear of the finders, the missing ID dots and the marker's edge. `None` when
-/// the field is too small or the fit fails (the caller keeps the window's grid).
+/// the field is too small, the fit fails or it cannot beat `rival`, the window's fit (the
+/// caller keeps the window's grid).
 pub(crate) fn refine_on_field(
     image: &GreyImage,
     grid: &MarkerGrid,
     id: u64,
+    rival: Rival,
 ) -> Option<(MarkerGrid, FieldFit)> {
     let dots = &grid.dots;
     let n = dots.size;
@@ -213,7 +215,7 @@ pub(crate) fn refine_on_field(
             c: TAU * (h + (row * (origin - dots.center))[0]),
         }
     };
-    let fit = fit_dot_field(image, [plane(0), plane(1)], &mask)?;
+    let fit = fit_dot_field_against(image, [plane(0), plane(1)], &mask, Some(rival))?;
     let [px, py] = fit.planes;
     let gradients = Matrix2::new(px.a, px.b, py.a, py.b);
     let inverse = gradients.try_inverse()?;

@@ -46,8 +46,8 @@ use crate::grey_image::{GreyImage, Polarity};
 use crate::layout::BitmapLayout;
 use crate::parallel;
 use crate::phase::{
-    fit_dot_field, wrap_angle, FieldFit, NodeMask, PhaseAnalysis, PhaseEngine, PhaseParams,
-    PhasePlane, MIN_IMAGE_SIDE,
+    fit_dot_field_against, wrap_angle, FieldFit, NodeMask, PhaseAnalysis, PhaseEngine, PhaseParams,
+    PhasePlane, Rival, MIN_IMAGE_SIDE,
 };
 use crate::pose::Pose;
 use matching::{best_match, Match, SearchRange, Template};
@@ -834,8 +834,12 @@ impl StampDetector {
             (reading.center.0 - icx as i64) as f64,
             (reading.center.1 - icy as i64) as f64,
         );
-        self.refine_on_field(image, &reading.found, &reading.planes, reading.origin)
-            .filter(|(_, fit)| fit.beats_window(reading.analysis.phase_std, at.x, at.y))
+        let rival = Rival {
+            phase_std: reading.analysis.phase_std,
+            at: (at.x, at.y),
+        };
+        self.refine_on_field(image, reading, rival)
+            .filter(|(_, fit)| fit.beats(&rival))
     }
 
     /// The detection of a marker read in its window, with the planes of its whole-field fit
@@ -882,16 +886,17 @@ impl StampDetector {
         })
     }
 
-    /// The planes (frame of `origin`, as given) refined on the matched bitmap's whole dot
+    /// The reading's planes (frame of its origin) refined on the matched bitmap's whole dot
     /// field (docs/design.md#field-fit), with the fit; `None` when
-    /// [`StampParams::field_fit`] is off or the fit fails (the window's planes stand).
+    /// [`StampParams::field_fit`] is off or the fit fails or cannot beat `rival`, the
+    /// window's fit (the window's planes stand).
     fn refine_on_field(
         &self,
         image: &GreyImage,
-        found: &Match,
-        planes: &[PhasePlane; 2],
-        origin: Vector2<f64>,
+        reading: &WindowReading,
+        rival: Rival,
     ) -> Option<([PhasePlane; 2], FieldFit)> {
+        let (found, planes, origin) = (&reading.found, &reading.planes, reading.origin);
         if !self.params.field_fit {
             return None;
         }
@@ -919,7 +924,7 @@ impl StampDetector {
                 ])
             },
         );
-        let fit = fit_dot_field(image, planes.map(|p| moved(&p, 1.0)), &mask)?;
+        let fit = fit_dot_field_against(image, planes.map(|p| moved(&p, 1.0)), &mask, Some(rival))?;
         Some((fit.planes.map(|p| moved(&p, -1.0)), fit))
     }
 
