@@ -510,8 +510,8 @@ impl FieldFit {
         phase_std_at(&self.covariance, self.frame, (x, y))
     }
 
-    /// Whether this fit should replace a window fit whose offsets have σ `window_phase_std`
-    /// (radians) at the image-frame point `(x, y)`:
+    /// Whether this fit should replace `rival`, the window fit (its offsets' σ at its
+    /// image-frame point):
     ///
     /// * when the field has spoiled cells, always: the window weighs every pixel alike, so the
     ///   same dust or hair may bias it while its σ, a noise figure, cannot show it;
