@@ -577,11 +577,7 @@ fn finders_at(regions: &[Region], inner: &Region) -> [Option<Finder>; 2] {
             // Inner side `a·m ± 2d` and outer side `b·m ∓ 2d` for a threshold bias `d`: the
             // sum is `(a + b)·m` (3 + 5 for centre and gap, 5 + 7 for gap and ring).
             module_px: (side_i + side_o) / modules,
-            polarity: if material.bright {
-                Polarity::BrightDots
-            } else {
-                Polarity::DarkDots
-            },
+            polarity: material_polarity(material.bright),
             score: (-10.0 * (ratio / nominal).ln().powi(2) - (eccentricity / 0.05).powi(2)).exp(),
             centre_hidden,
         })
@@ -605,6 +601,15 @@ fn nested_pair<'a>(regions: &'a [Region], inner: &Region) -> Option<&'a Region> 
     }
     let eccentricity = distance(inner, outer) / outer.filled_area.sqrt();
     (eccentricity <= MAX_ECCENTRICITY).then_some(outer)
+}
+
+/// The polarity of a finder whose material (ring and centre) is bright, or dark.
+fn material_polarity(bright: bool) -> Polarity {
+    if bright {
+        Polarity::BrightDots
+    } else {
+        Polarity::DarkDots
+    }
 }
 
 fn centroid(r: &Region) -> Vector2<f64> {

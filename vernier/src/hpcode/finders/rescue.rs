@@ -12,7 +12,9 @@
 //! global threshold between the most material gap and the least material ring, and read as
 //! the other finders are ([`super::finders_at`]).
 
-use super::{centroid, compact, finders_at, Finder, MIN_CENTER_AREA, MIN_SPACING};
+use super::{
+    centroid, compact, finders_at, material_polarity, Finder, MIN_CENTER_AREA, MIN_SPACING,
+};
 use crate::binarize::{Region, Regions, ThresholdMap};
 use crate::grey_image::{GreyImage, Polarity};
 use nalgebra::Vector2;
@@ -67,12 +69,9 @@ impl Unexplained {
         }
     }
 
+    /// The polarity of the finder it would be the centre of.
     fn polarity(&self) -> Polarity {
-        if self.bright {
-            Polarity::BrightDots
-        } else {
-            Polarity::DarkDots
-        }
+        material_polarity(self.bright)
     }
 }
 
