@@ -601,6 +601,60 @@ fn dark_dots_under_uneven_illumination_blur_and_noise() {
     assert!(worst < 0.02, "{worst}");
 }
 
+#[test]
+fn glyphs_on_the_dim_side_of_a_steep_light_fall_off_are_read() {
+    // stampD and stampG differ in a few glyph cells only. The light falls from 1 to 0.2 across
+    // each stamp, in four directions, so that the glyph lies on the bright, the dim or a middle
+    // side: read against one threshold for the whole stamp the dim side's glyph lines read as
+    // gaps, and the vote between the two bitmaps fails (a real stamp under a vignette did).
+    let period = 10.0;
+    let bitmaps = load_bitmaps(&["stampD", "stampG"], period);
+    let mut detector = StampDetector::new(StampParams::new(period, bitmaps.clone())).unwrap();
+    let mut rng = SmallRng::seed_from_u64(5);
+    let noise = rand_distr::Normal::new(0.0, 0.01).unwrap();
+    for quarter in 0..4 {
+        let (s, c) = (quarter as f64 * FRAC_PI_2).sin_cos();
+        let falls_to = Vector2::new(c, s);
+        let placed: Vec<Placed> = (0..2)
+            .map(|k| Placed {
+                bitmap: k,
+                origin: Vector2::new(250.0 + 500.0 * k as f64, 250.0),
+                alpha: rng.random_range(-0.3..0.3),
+                pixel_size: period / 6.5,
+            })
+            .collect();
+        let clean = render_stamps((1000, 500), &placed, &bitmaps, 1.0);
+        let pixels: Vec<f32> = clean
+            .pixels()
+            .iter()
+            .enumerate()
+            .map(|(i, &v)| {
+                let x = Vector2::new((i % 1000) as f64, (i / 1000) as f64);
+                // Across each stamp (~230 px wide) from 1 to 0.2.
+                let centre = Vector2::new(if x.x < 500.0 { 250.0 } else { 750.0 }, 250.0);
+                let t = ((x - centre).dot(&falls_to) / 230.0 + 0.5).clamp(0.0, 1.0);
+                let light = 1.0 - 0.8 * t;
+                let g = light * (0.08 + 0.85 * v as f64) + rng.sample(noise);
+                ((g.clamp(0.0, 1.0) * 255.0).round() / 255.0) as f32
+            })
+            .collect();
+        let image = GreyImage::new(1000, 500, pixels).unwrap();
+        let found = detector.detect(&image).unwrap();
+        for p in &placed {
+            let read: Vec<usize> = found
+                .iter()
+                .filter(|d| (d.origin_px - p.origin).norm() < 2.0)
+                .map(|d| d.id)
+                .collect();
+            assert_eq!(
+                read,
+                [p.bitmap],
+                "light falling along {falls_to:?}: {found:#?}"
+            );
+        }
+    }
+}
+
 /// `clean` (coverage 0–1) as grey levels `background + contrast·coverage`, with a dark hair
 /// (3 px wide, grey 0.03) along `hair` (two points) and a bright disc (grey 0.97, radius
 /// `disc.1`) at `disc.0`, quantised to 8 bits.

@@ -276,6 +276,160 @@ pub(crate) fn best_match(
     })
 }
 
+/// Fewest isolated dots and open gaps for a quadratic fit of their levels across the
+/// thumbnail ([`CellReader`]); with fewer, their mean levels are the references.
+const MIN_SURFACE_CELLS: usize = 24;
+/// Smallest local contrast between the fitted dot and gap levels, in units of the whole
+/// thumbnail's: where a fitted surface strays (beyond the field, where no dot is), the
+/// flattened levels would blow up.
+const MIN_CONTRAST_FRACTION: f64 = 0.25;
+
+/// A smooth surface of grey levels over the thumbnail: a quadratic in the cell position, or a
+/// constant.
+#[derive(Clone, Copy, Debug)]
+struct LevelSurface {
+    /// Coefficients of `1, x, y, x², x·y, y²`, `x` and `y` the cell position scaled to
+    /// `[−1, 1]` across the thumbnail.
+    coefficients: [f64; 6],
+}
+
+impl LevelSurface {
+    /// Basis functions at thumbnail index `(c, r)` of a `len` thumbnail.
+    fn basis(len: [usize; 2], c: usize, r: usize) -> [f64; 6] {
+        let scaled = |v: usize, n: usize| 2.0 * v as f64 / n.max(2) as f64 - 1.0;
+        let (x, y) = (scaled(c, len[0]), scaled(r, len[1]));
+        [1.0, x, y, x * x, x * y, y * y]
+    }
+
+    /// Least-squares fit to `samples` (`(c, r, level)`): a quadratic when there are
+    /// [`MIN_SURFACE_CELLS`], their mean when fewer; `None` without any.
+    fn fit(len: [usize; 2], samples: &[(usize, usize, f64)]) -> Option<Self> {
+        let mean = samples.iter().map(|s| s.2).sum::<f64>() / samples.len() as f64;
+        let constant = LevelSurface {
+            coefficients: [mean, 0.0, 0.0, 0.0, 0.0, 0.0],
+        };
+        if samples.is_empty() {
+            return None;
+        }
+        if samples.len() < MIN_SURFACE_CELLS {
+            return Some(constant);
+        }
+        let mut normal = nalgebra::Matrix6::<f64>::zeros();
+        let mut rhs = nalgebra::Vector6::<f64>::zeros();
+        for &(c, r, v) in samples {
+            let b = nalgebra::Vector6::from(Self::basis(len, c, r));
+            normal += b * b.transpose();
+            rhs += b * v;
+        }
+        // Cells bunched in part of the thumbnail leave the quadratic undetermined.
+        Some(match normal.cholesky() {
+            Some(ch) => LevelSurface {
+                coefficients: ch.solve(&rhs).into(),
+            },
+            None => constant,
+        })
+    }
+
+    /// Level at thumbnail index `(c, r)`.
+    fn at(&self, len: [usize; 2], c: usize, r: usize) -> f64 {
+        let b = Self::basis(len, c, r);
+        (0..6).map(|k| b[k] * self.coefficients[k]).sum()
+    }
+}
+
+/// Reads the thumbnail's cells as set or unset under a hypothesis, on levels flattened for the
+/// illumination. Two kinds of cell look alike everywhere in the lattice, unlike those of a
+/// solid frame or glyph: the *isolated dots* (dot cells that the hypothesis predicts set, their
+/// four side neighbours unset) and the *open gaps* (gap-centre cells predicted unset, their
+/// four side neighbours unset). A quadratic surface fitted to each across the thumbnail
+/// follows the light (a vignette, an illumination gradient) and not the layout, and each
+/// cell's level is taken relative to them: `n = (v − gaps)/(dots − gaps)`, 0 on an open gap
+/// and 1 on an isolated dot whatever the gain and offset there. The threshold is then one
+/// for the whole thumbnail: halfway between the mean flattened levels of the cells predicted
+/// set and of those predicted unset.
+struct CellReader {
+    /// Flattened level per cell, row-major like the thumbnail; `None` where unseen.
+    levels: Vec<Option<f64>>,
+    /// Columns of the thumbnail.
+    cols: usize,
+    /// Flattened level halfway between set and unset cells.
+    threshold: f64,
+}
+
+impl CellReader {
+    /// `None` when the hypothesis predicts no seen cell set, or none unset.
+    fn new(thumb: &Thumbnail, templates: &[Template], h: &Hypothesis) -> Option<Self> {
+        let [cols, rows] = thumb.len;
+        let cell = |c: usize, r: usize| [c as i64 + thumb.lo[0], r as i64 + thumb.lo[1]];
+        let set = |i: [i64; 2]| predicts_set(templates, h, i);
+        let sides_unset = |i: [i64; 2]| {
+            [[1, 0], [-1, 0], [0, 1], [0, -1]]
+                .iter()
+                .all(|d| !set([i[0] + d[0], i[1] + d[1]]))
+        };
+        let (mut dots, mut gaps) = (Vec::new(), Vec::new());
+        for r in 0..rows {
+            for c in 0..cols {
+                let Some(v) = thumb.values[r * cols + c] else {
+                    continue;
+                };
+                let i = cell(c, r);
+                match (i[0].rem_euclid(2), i[1].rem_euclid(2)) {
+                    (0, 0) if set(i) && sides_unset(i) => dots.push((c, r, v as f64)),
+                    (1, 1) if !set(i) && sides_unset(i) => gaps.push((c, r, v as f64)),
+                    _ => {}
+                }
+            }
+        }
+        // Without isolated dots or open gaps (a bitmap of solid shapes): levels as they are.
+        let references =
+            LevelSurface::fit(thumb.len, &dots).zip(LevelSurface::fit(thumb.len, &gaps));
+        let mean = |s: &[(usize, usize, f64)]| s.iter().map(|s| s.2).sum::<f64>() / s.len() as f64;
+        let whole_contrast = match references {
+            Some(_) => mean(&dots) - mean(&gaps),
+            None => 1.0,
+        };
+        let min_contrast = MIN_CONTRAST_FRACTION * whole_contrast.abs();
+        let levels: Vec<Option<f64>> = (0..rows * cols)
+            .map(|k| {
+                let v = thumb.values[k]? as f64;
+                let (c, r) = (k % cols, k / cols);
+                let Some((dot, gap)) = references else {
+                    return Some(v);
+                };
+                let (dot, gap) = (dot.at(thumb.len, c, r), gap.at(thumb.len, c, r));
+                let contrast = whole_contrast.signum()
+                    * ((dot - gap) * whole_contrast.signum()).max(min_contrast);
+                Some((v - gap) / contrast)
+            })
+            .collect();
+        let (mut s1, mut n1, mut s0, mut n0) = (0.0, 0usize, 0.0, 0usize);
+        for (k, level) in levels.iter().enumerate() {
+            if let Some(n) = level {
+                if set(cell(k % cols, k / cols)) {
+                    s1 += n;
+                    n1 += 1;
+                } else {
+                    s0 += n;
+                    n0 += 1;
+                }
+            }
+        }
+        (n1 > 0 && n0 > 0 && whole_contrast != 0.0).then(|| CellReader {
+            levels,
+            cols,
+            threshold: (s1 / n1 as f64 + s0 / n0 as f64) / 2.0,
+        })
+    }
+
+    /// Whether the cell at thumbnail index `(c, r)` (inside the thumbnail) reads as set;
+    /// `None` where unseen.
+    fn reads_set(&self, c: i64, r: i64) -> Option<bool> {
+        let n = self.levels[r as usize * self.cols + c as usize]?;
+        Some(n > self.threshold)
+    }
+}
+
 /// Correlation margin a mirrored hypothesis needs over a proper one.
 const MIRROR_MARGIN: f64 = 1e-6;
 
@@ -319,23 +473,10 @@ fn cell_vote(
     winner: &Hypothesis,
     rivals: &[Hypothesis],
 ) -> f64 {
-    let cells: Vec<(f32, [i64; 2])> = seen_cells(thumb).collect();
-    // Grey level halfway between the winner's set and unset cells.
-    let (mut s1, mut n1, mut s0, mut n0) = (0.0f64, 0usize, 0.0f64, 0usize);
-    for &(v, i) in &cells {
-        if predicts_set(templates, winner, i) {
-            s1 += v as f64;
-            n1 += 1;
-        } else {
-            s0 += v as f64;
-            n0 += 1;
-        }
-    }
-    if n1 == 0 || n0 == 0 {
+    let cells: Vec<[i64; 2]> = seen_cells(thumb).map(|(_, i)| i).collect();
+    let Some(reader) = CellReader::new(thumb, templates, winner) else {
         return 0.0;
-    }
-    let (m1, m0) = (s1 / n1 as f64, s0 / n0 as f64);
-    let mid = (m1 + m0) / 2.0;
+    };
     // Whether the cell at thumbnail index (col, row) reads as the winner predicts (None:
     // unseen or outside).
     let (cols, rows) = (thumb.len[0] as i64, thumb.len[1] as i64);
@@ -343,9 +484,8 @@ fn cell_vote(
         if c < 0 || r < 0 || c >= cols || r >= rows {
             return None;
         }
-        let v = thumb.values[(r * cols + c) as usize]?;
         let i = [c + thumb.lo[0], r + thumb.lo[1]];
-        Some(((v as f64 > mid) == (m1 > m0)) == predicts_set(templates, winner, i))
+        Some(reader.reads_set(c, r)? == predicts_set(templates, winner, i))
     };
     // How far a cell's reading is evidence: as much as its 8 neighbours read as the winner
     // predicts (all: 1; half or fewer: 0). A dust speck or a hair over a few cells that tell
@@ -376,11 +516,12 @@ fn cell_vote(
     let mut vote = 1.0f64;
     for rival in rivals {
         let (mut net, mut compared, mut evidence) = (0.0f64, 0usize, 0.0f64);
-        for &(v, i) in &cells {
+        for &i in &cells {
             let set = predicts_set(templates, winner, i);
             if set != predicts_set(templates, rival, i) {
                 compared += 1;
-                let sign = if ((v as f64 > mid) == (m1 > m0)) == set {
+                let (c, r) = (i[0] - thumb.lo[0], i[1] - thumb.lo[1]);
+                let sign = if reader.reads_set(c, r) == Some(set) {
                     1.0
                 } else {
                     -1.0
