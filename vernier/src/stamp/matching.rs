@@ -304,13 +304,12 @@ impl LevelSurface {
     /// Least-squares fit to `samples` (`(c, r, level)`): a quadratic when there are
     /// [`MIN_SURFACE_CELLS`], their mean when fewer; `None` without any.
     fn fit(len: [usize; 2], samples: &[(usize, usize, f64)]) -> Option<Self> {
-        let mean = samples.iter().map(|s| s.2).sum::<f64>() / samples.len() as f64;
-        let constant = LevelSurface {
-            coefficients: [mean, 0.0, 0.0, 0.0, 0.0, 0.0],
-        };
         if samples.is_empty() {
             return None;
         }
+        let constant = LevelSurface {
+            coefficients: [mean_level(samples), 0.0, 0.0, 0.0, 0.0, 0.0],
+        };
         if samples.len() < MIN_SURFACE_CELLS {
             return Some(constant);
         }
@@ -335,6 +334,11 @@ impl LevelSurface {
         let b = Self::basis(len, c, r);
         (0..6).map(|k| b[k] * self.coefficients[k]).sum()
     }
+}
+
+/// Mean level of cell samples `(c, r, level)` (NaN for none).
+fn mean_level(samples: &[(usize, usize, f64)]) -> f64 {
+    samples.iter().map(|s| s.2).sum::<f64>() / samples.len() as f64
 }
 
 /// Reads the thumbnail's cells as set or unset under a hypothesis, on levels flattened for the
@@ -384,9 +388,8 @@ impl CellReader {
         // Without isolated dots or open gaps (a bitmap of solid shapes): levels as they are.
         let references =
             LevelSurface::fit(thumb.len, &dots).zip(LevelSurface::fit(thumb.len, &gaps));
-        let mean = |s: &[(usize, usize, f64)]| s.iter().map(|s| s.2).sum::<f64>() / s.len() as f64;
         let whole_contrast = match references {
-            Some(_) => mean(&dots) - mean(&gaps),
+            Some(_) => mean_level(&dots) - mean_level(&gaps),
             None => 1.0,
         };
         let min_contrast = MIN_CONTRAST_FRACTION * whole_contrast.abs();
