@@ -336,6 +336,40 @@ impl LevelSurface {
     }
 }
 
+/// Cells of a thumbnail as `(c, r, level)`, `(c, r)` the thumbnail index.
+type CellSamples = Vec<(usize, usize, f64)>;
+
+/// The seen cells of `thumb` that show the lattice's own levels under a hypothesis (`set`
+/// says which cells it predicts set): the isolated dots (dot cells predicted set, their four
+/// side neighbours unset) and the open gaps (gap centres predicted unset, their four side
+/// neighbours unset).
+fn lattice_references(
+    thumb: &Thumbnail,
+    set: &impl Fn([i64; 2]) -> bool,
+) -> (CellSamples, CellSamples) {
+    let [cols, rows] = thumb.len;
+    let sides_unset = |i: [i64; 2]| {
+        [[1, 0], [-1, 0], [0, 1], [0, -1]]
+            .iter()
+            .all(|d| !set([i[0] + d[0], i[1] + d[1]]))
+    };
+    let (mut dots, mut gaps) = (Vec::new(), Vec::new());
+    for r in 0..rows {
+        for c in 0..cols {
+            let Some(v) = thumb.values[r * cols + c] else {
+                continue;
+            };
+            let i = [c as i64 + thumb.lo[0], r as i64 + thumb.lo[1]];
+            match (i[0].rem_euclid(2), i[1].rem_euclid(2)) {
+                (0, 0) if set(i) && sides_unset(i) => dots.push((c, r, v as f64)),
+                (1, 1) if !set(i) && sides_unset(i) => gaps.push((c, r, v as f64)),
+                _ => {}
+            }
+        }
+    }
+    (dots, gaps)
+}
+
 /// Mean level of cell samples `(c, r, level)` (NaN for none).
 fn mean_level(samples: &[(usize, usize, f64)]) -> f64 {
     samples.iter().map(|s| s.2).sum::<f64>() / samples.len() as f64
@@ -358,6 +392,9 @@ struct CellReader {
     cols: usize,
     /// Flattened level halfway between set and unset cells.
     threshold: f64,
+    /// Set cells read above the threshold (always so on flattened levels; raw levels of dark
+    /// dots read below it).
+    bright_set: bool,
 }
 
 impl CellReader {
@@ -366,25 +403,7 @@ impl CellReader {
         let [cols, rows] = thumb.len;
         let cell = |c: usize, r: usize| [c as i64 + thumb.lo[0], r as i64 + thumb.lo[1]];
         let set = |i: [i64; 2]| predicts_set(templates, h, i);
-        let sides_unset = |i: [i64; 2]| {
-            [[1, 0], [-1, 0], [0, 1], [0, -1]]
-                .iter()
-                .all(|d| !set([i[0] + d[0], i[1] + d[1]]))
-        };
-        let (mut dots, mut gaps) = (Vec::new(), Vec::new());
-        for r in 0..rows {
-            for c in 0..cols {
-                let Some(v) = thumb.values[r * cols + c] else {
-                    continue;
-                };
-                let i = cell(c, r);
-                match (i[0].rem_euclid(2), i[1].rem_euclid(2)) {
-                    (0, 0) if set(i) && sides_unset(i) => dots.push((c, r, v as f64)),
-                    (1, 1) if !set(i) && sides_unset(i) => gaps.push((c, r, v as f64)),
-                    _ => {}
-                }
-            }
-        }
+        let (dots, gaps) = lattice_references(thumb, &set);
         // Without isolated dots or open gaps (a bitmap of solid shapes): levels as they are.
         let references =
             LevelSurface::fit(thumb.len, &dots).zip(LevelSurface::fit(thumb.len, &gaps));
@@ -418,10 +437,12 @@ impl CellReader {
                 }
             }
         }
+        let (m1, m0) = (s1 / n1 as f64, s0 / n0 as f64);
         (n1 > 0 && n0 > 0 && whole_contrast != 0.0).then(|| CellReader {
             levels,
             cols,
-            threshold: (s1 / n1 as f64 + s0 / n0 as f64) / 2.0,
+            threshold: (m1 + m0) / 2.0,
+            bright_set: m1 > m0,
         })
     }
 
@@ -429,7 +450,7 @@ impl CellReader {
     /// `None` where unseen.
     fn reads_set(&self, c: i64, r: i64) -> Option<bool> {
         let n = self.levels[r as usize * self.cols + c as usize]?;
-        Some(n > self.threshold)
+        Some((n > self.threshold) == self.bright_set)
     }
 }
 
@@ -620,5 +641,63 @@ mod tests {
         let found = best_match(&thumb, &[other, template_again(&rows)], &range).unwrap();
         assert_eq!(found.bitmap, 1);
         assert_eq!(found.vote, 1.0, "{found:?}");
+    }
+
+    /// A thumbnail of `rows` seen through the identity hypothesis (thumbnail cell = bitmap
+    /// cell), each cell's level `level(set, column)`.
+    fn seen(rows: &[Vec<u8>], level: impl Fn(bool, usize) -> f32) -> (Thumbnail, Template) {
+        let (h, w) = (rows.len(), rows[0].len());
+        let bitmap = BitmapLayout::from_rows(1.0, rows).unwrap();
+        let values = (0..h * w)
+            .map(|k| Some(level(rows[k / w][k % w] == 1, k % w)))
+            .collect();
+        let half = [(w as i64 - 1) / 2, (h as i64 - 1) / 2];
+        let thumb = Thumbnail {
+            lo: [-half[0], -half[1]],
+            len: [w, h],
+            values,
+        };
+        (thumb, Template::new(&bitmap))
+    }
+
+    /// Whether every cell of `thumb` reads as `rows` has it.
+    fn reads_as_drawn(thumb: &Thumbnail, template: Template, rows: &[Vec<u8>]) -> bool {
+        let h = Hypothesis {
+            bitmap: 0,
+            orientation: Orientation::new(0, false),
+            origin_cell: [0, 0],
+        };
+        let reader = CellReader::new(thumb, &[template], &h).unwrap();
+        let w = rows[0].len();
+        (0..rows.len() * w).all(|k| {
+            reader.reads_set((k % w) as i64, (k / w) as i64) == Some(rows[k / w][k % w] == 1)
+        })
+    }
+
+    #[test]
+    fn cells_read_against_the_light_where_they_are() {
+        // 41 × 41 cells: dots on even cells, a solid bar (a glyph) across row 5 and down column
+        // 33. Dark dots, the light falling from 1 to 0.2 across the columns: on one threshold
+        // for the whole thumbnail the dim side's bar reads as gaps.
+        let n = 41;
+        let mut rows = vec![vec![0u8; n]; n];
+        for r in (0..n).step_by(2) {
+            for c in (0..n).step_by(2) {
+                rows[r][c] = 1;
+            }
+        }
+        rows[5][4..37].fill(1);
+        (5..30).for_each(|r| rows[r][33] = 1);
+        let light = |c: usize| 1.0 - 0.8 * c as f32 / (n - 1) as f32;
+        let (thumb, template) = seen(&rows, |set, c| light(c) * if set { 0.15 } else { 0.9 });
+        assert!(reads_as_drawn(&thumb, template, &rows));
+        // Without isolated dots (solid 2 × 2 squares on a 4-cell pitch, none cut to one cell
+        // at the edges), the raw levels are read, dark ink as set.
+        let inked = |v: usize| v % 4 == 1 || v % 4 == 2;
+        let solid: Vec<Vec<u8>> = (0..n)
+            .map(|r| (0..n).map(|c| u8::from(inked(r) && inked(c))).collect())
+            .collect();
+        let (thumb, template) = seen(&solid, |set, _| if set { 0.1 } else { 0.8 });
+        assert!(reads_as_drawn(&thumb, template, &solid));
     }
 }
