@@ -178,7 +178,10 @@ pub(crate) fn best_match(
         }
     }
     // Padded index of thumbnail cell (i1, i2).
-    let index = |i: [i64; 2]| (i[1] - thumb.lo[1] + pad) * pw + (i[0] - thumb.lo[0] + pad);
+    let index = |i: [i64; 2]| {
+        let (c, r) = thumb.index(i);
+        (r + pad) * pw + c + pad
+    };
     let norm = (n as f64 * var).sqrt();
     // Every hypothesis tried, with its correlation.
     let mut scored: Vec<(Hypothesis, f64)> = Vec::new();
@@ -204,7 +207,7 @@ pub(crate) fn best_match(
                     let origin = [o1, o2];
                     o1 += 2;
                     // The whole template must stay inside the padded grid.
-                    let (c, r) = (origin[0] - thumb.lo[0], origin[1] - thumb.lo[1]);
+                    let (c, r) = thumb.index(origin);
                     if c + pad < reach
                         || r + pad < reach
                         || c + reach >= thumb.len[0] as i64 + pad
@@ -359,7 +362,7 @@ fn lattice_references(
             let Some(v) = thumb.values[r * cols + c] else {
                 continue;
             };
-            let i = [c as i64 + thumb.lo[0], r as i64 + thumb.lo[1]];
+            let i = thumb.cell(c as i64, r as i64);
             match (i[0].rem_euclid(2), i[1].rem_euclid(2)) {
                 (0, 0) if set(i) && sides_unset(i) => dots.push((c, r, v as f64)),
                 (1, 1) if !set(i) && sides_unset(i) => gaps.push((c, r, v as f64)),
@@ -401,7 +404,6 @@ impl CellReader {
     /// `None` when the hypothesis predicts no seen cell set, or none unset.
     fn new(thumb: &Thumbnail, templates: &[Template], h: &Hypothesis) -> Option<Self> {
         let [cols, rows] = thumb.len;
-        let cell = |c: usize, r: usize| [c as i64 + thumb.lo[0], r as i64 + thumb.lo[1]];
         let set = |i: [i64; 2]| predicts_set(templates, h, i);
         let (dots, gaps) = lattice_references(thumb, &set);
         // Without isolated dots or open gaps (a bitmap of solid shapes): levels as they are.
@@ -428,7 +430,7 @@ impl CellReader {
         let (mut s1, mut n1, mut s0, mut n0) = (0.0, 0usize, 0.0, 0usize);
         for (k, level) in levels.iter().enumerate() {
             if let Some(n) = level {
-                if set(cell(k % cols, k / cols)) {
+                if set(thumb.cell((k % cols) as i64, (k / cols) as i64)) {
                     s1 += n;
                     n1 += 1;
                 } else {
@@ -457,12 +459,12 @@ impl CellReader {
 /// Correlation margin a mirrored hypothesis needs over a proper one.
 const MIRROR_MARGIN: f64 = 1e-6;
 
-/// Seen thumbnail cells `(value, cell)`.
-fn seen_cells(thumb: &Thumbnail) -> impl Iterator<Item = (f32, [i64; 2])> + '_ {
+/// Seen thumbnail cells.
+fn seen_cells(thumb: &Thumbnail) -> impl Iterator<Item = [i64; 2]> + '_ {
     (0..thumb.len[1]).flat_map(move |r| {
         (0..thumb.len[0]).filter_map(move |c| {
-            let v = thumb.values[r * thumb.len[0] + c]?;
-            Some((v, [c as i64 + thumb.lo[0], r as i64 + thumb.lo[1]]))
+            thumb.values[r * thumb.len[0] + c]?;
+            Some(thumb.cell(c as i64, r as i64))
         })
     })
 }
@@ -475,7 +477,7 @@ fn distinguishing_cells(
     b: &Hypothesis,
 ) -> usize {
     seen_cells(thumb)
-        .filter(|&(_, i)| predicts_set(templates, a, i) != predicts_set(templates, b, i))
+        .filter(|&i| predicts_set(templates, a, i) != predicts_set(templates, b, i))
         .count()
 }
 
@@ -497,7 +499,7 @@ fn cell_vote(
     winner: &Hypothesis,
     rivals: &[Hypothesis],
 ) -> f64 {
-    let cells: Vec<[i64; 2]> = seen_cells(thumb).map(|(_, i)| i).collect();
+    let cells: Vec<[i64; 2]> = seen_cells(thumb).collect();
     let Some(reader) = CellReader::new(thumb, templates, winner) else {
         return 0.0;
     };
@@ -508,14 +510,13 @@ fn cell_vote(
         if c < 0 || r < 0 || c >= cols || r >= rows {
             return None;
         }
-        let i = [c + thumb.lo[0], r + thumb.lo[1]];
-        Some(reader.reads_set(c, r)? == predicts_set(templates, winner, i))
+        Some(reader.reads_set(c, r)? == predicts_set(templates, winner, thumb.cell(c, r)))
     };
     // How far a cell's reading is evidence: as much as its 8 neighbours read as the winner
     // predicts (all: 1; half or fewer: 0). A dust speck or a hair over a few cells that tell
     // two bitmaps apart also spoils the cells around them, so it cannot fake a glyph.
     let weight = |i: [i64; 2]| {
-        let (c, r) = (i[0] - thumb.lo[0], i[1] - thumb.lo[1]);
+        let (c, r) = thumb.index(i);
         let (mut good, mut seen) = (0usize, 0usize);
         for (dc, dr) in [
             (-1, -1),
@@ -544,7 +545,7 @@ fn cell_vote(
             let set = predicts_set(templates, winner, i);
             if set != predicts_set(templates, rival, i) {
                 compared += 1;
-                let (c, r) = (i[0] - thumb.lo[0], i[1] - thumb.lo[1]);
+                let (c, r) = thumb.index(i);
                 let sign = if reader.reads_set(c, r) == Some(set) {
                     1.0
                 } else {

@@ -25,10 +25,21 @@ pub(crate) struct Thumbnail {
 }
 
 impl Thumbnail {
+    /// Cell `(i1, i2)` at thumbnail index `(c, r)` (column, row from the block's first cell).
+    pub fn cell(&self, c: i64, r: i64) -> [i64; 2] {
+        [c + self.lo[0], r + self.lo[1]]
+    }
+
+    /// Thumbnail index `(c, r)` of cell `i`, the inverse of [`Thumbnail::cell`] (outside the
+    /// block for cells beyond it).
+    pub fn index(&self, i: [i64; 2]) -> (i64, i64) {
+        (i[0] - self.lo[0], i[1] - self.lo[1])
+    }
+
     /// Value of cell `(i1, i2)`, `None` outside the block or the image.
     #[cfg(test)]
     pub fn get(&self, i1: i64, i2: i64) -> Option<f32> {
-        let (c, r) = (i1 - self.lo[0], i2 - self.lo[1]);
+        let (c, r) = self.index([i1, i2]);
         if c < 0 || r < 0 || c as usize >= self.len[0] || r as usize >= self.len[1] {
             return None;
         }
