@@ -161,6 +161,23 @@ pub(crate) fn locate(
     })
 }
 
+impl MarkerGrid {
+    /// The grid with its centre moved to the planes' node `shift` whole periods away along
+    /// the pattern axes: a renumbering of the nodes, as [`DotGrid::renumbered`] does for a
+    /// grid fitted to the dots.
+    pub(crate) fn renumbered(&self, shift: Vector2<f64>) -> MarkerGrid {
+        let dots = &self.dots;
+        MarkerGrid {
+            period_shift: (self.period_shift.0 + shift.x, self.period_shift.1 + shift.y),
+            dots: DotGrid {
+                center: dots.center + dots.step_x * shift.x + dots.step_y * shift.y,
+                ..*dots
+            },
+            ..*self
+        }
+    }
+}
+
 /// Where the marker's three finders put it on the lattice of the window's planes.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct FinderView {

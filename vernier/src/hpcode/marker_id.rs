@@ -29,6 +29,10 @@ pub(crate) struct DotGrid {
     /// from the centre is at `center + (step_x·u₁ + step_y·u₂)/(1 + p·u)` (the general
     /// homography with this centre and these steps there); zero for an untilted marker.
     pub perspective: Vector2<f64>,
+    /// True when the grid was fitted to the marker's own dots
+    /// ([`super::dot_homography::fit_dot_homography`]): the ID is then read where it puts the
+    /// dots, with no local search for them ([`reference_shifts`]).
+    pub fitted_to_dots: bool,
 }
 
 impl DotGrid {
@@ -41,6 +45,7 @@ impl DotGrid {
             step_y,
             size: n,
             perspective: Vector2::zeros(),
+            fitted_to_dots: false,
         }
     }
 
@@ -50,6 +55,36 @@ impl DotGrid {
         let u = Vector2::new(c - h, r - h);
         let depth = 1.0 + self.perspective.dot(&u);
         self.center + (self.step_x * u.x + self.step_y * u.y) / depth
+    }
+
+    /// The same homography with its dots renumbered so that the dot at marker coordinates
+    /// `shift` (whole periods from the centre dot) becomes the centre dot.
+    pub(crate) fn renumbered(&self, shift: Vector2<f64>) -> DotGrid {
+        // x = (A·u + t)/(1 + p·u) with A = S + t·pᵀ; for u = u' + k, divide through by
+        // d = 1 + p·k: t' = x(k), A' = A/d, p' = p/d.
+        let steps = nalgebra::Matrix2::from_columns(&[self.step_x, self.step_y]);
+        let a = steps + self.center * self.perspective.transpose();
+        let depth = 1.0 + self.perspective.dot(&shift);
+        let center = (a * shift + self.center) / depth;
+        let perspective = self.perspective / depth;
+        let steps = a / depth - center * perspective.transpose();
+        DotGrid {
+            center,
+            step_x: steps.column(0).into(),
+            step_y: steps.column(1).into(),
+            size: self.size,
+            perspective,
+            fitted_to_dots: self.fitted_to_dots,
+        }
+    }
+
+    /// The inverse of [`DotGrid::at`]: the marker coordinates `u = (c − h, r − h)` (periods
+    /// from the centre dot) of image point `p`; `None` where the homography is singular.
+    pub(crate) fn marker_coordinates(&self, p: Vector2<f64>) -> Option<Vector2<f64>> {
+        // d·(1 + p·u) = S·u for d = p − centre, so (S − d·pᵀ)·u = d.
+        let d = p - self.center;
+        let steps = nalgebra::Matrix2::from_columns(&[self.step_x, self.step_y]);
+        Some((steps - d * self.perspective.transpose()).try_inverse()? * d)
     }
 }
 
@@ -257,7 +292,10 @@ impl<'a> EdgeSamples<'a> {
     ) -> Option<Self> {
         let point = |r: f64, c: f64| edge.point(grid, r, c);
         let sample = |p: Vector2<f64>| dot_level(image, polarity, p, grid);
-        let shifts = reference_shifts(grid.size, &point, &sample)?;
+        let shifts = match grid.fitted_to_dots {
+            true => vec![(0.0, 0.0); grid.size - 8],
+            false => reference_shifts(grid.size, &point, &sample)?,
+        };
         let mut samples = EdgeSamples {
             image,
             polarity,

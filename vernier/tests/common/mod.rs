@@ -249,8 +249,8 @@ pub struct Degradation {
 
 /// The degradations of the real-image tests (`real_hpcode_views.rs`, `stamp.rs`): the mild ones (one
 /// pixel of blur, noise and JPEG at camera levels, illumination, a quarter of the contrast,
-/// inversion, any turn, lower magnifications, mild perspective, overexposure) must keep every
-/// marker; the harsh ones (strong perspective, gamma or overexposure, blur at a quarter period
+/// inversion, any turn, lower magnifications, perspective up to a 9 % keystone, overexposure)
+/// must keep every marker; the harsh ones (gamma or strong overexposure, blur at a quarter period
 /// and beyond, heavy noise, a third of the magnification) are counted only. None may give an ID that is not in the image.
 pub const DEGRADATIONS: &[Degradation] = &[
     mild("blur 1 px", |i| blurred(i, 1.0)),
@@ -277,10 +277,12 @@ pub const DEGRADATIONS: &[Degradation] = &[
     mild("keystone 3 %", |i| keystone(i, 0.03)),
     // Strong perspective on markers half the image wide: the window's planes do not hold to the
     // far corner (grids drifting off a far edge read another row as the ID without the check
-    // of the field's edges: `HPCodeImage_20um.png` and `code21.jpg` at 5 and 6.5 %).
-    harsh("keystone 5 %", |i| keystone(i, 0.05)),
-    harsh("keystone 6.5 %", |i| keystone(i, 0.065)),
-    harsh("keystone 9 %", |i| keystone(i, 0.09)),
+    // of the field's edges: `HPCodeImage_20um.png` and `code21.jpg` at 5 and 6.5 %). HP codes
+    // are read on the grid fitted to their own dots (docs/design.md#hp-dot-homography); before
+    // it, 15, 16 and 11 of their 16 markers were found at 5, 6.5 and 9 %.
+    mild("keystone 5 %", |i| keystone(i, 0.05)),
+    mild("keystone 6.5 %", |i| keystone(i, 0.065)),
+    mild("keystone 9 %", |i| keystone(i, 0.09)),
     // Overexposed: substrate, gaps and finder centres saturate alike (finders read from their
     // gap and ring).
     mild("levels ×1.8, clipped", |i| {
