@@ -848,7 +848,8 @@ fn planes_agree_with_dots(
     phase_std: [f64; 2],
 ) -> std::result::Result<(), String> {
     let apart = (grid.dots.center - dots.center).norm() / grid.dots.step_x.norm();
-    let planes_std = phase_std[0].max(phase_std[1]) / TAU;
+    // Planes left unrefined (`PhaseParams::refine_iterations` 0) carry no σ: none allowed.
+    let planes_std = (phase_std[0].max(phase_std[1]) / TAU).max(0.0);
     // A plane fitted to the phase of a tilted grid takes in the mean of its quadratic term,
     // |p|·⟨u²⟩ over its pixels: at most |p|₁·h²/3 for pixels inside the marker (0.03–0.05
     // ·|p|₁·h² seen for the windows on keystoned real images).
