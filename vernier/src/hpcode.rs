@@ -853,7 +853,7 @@ fn planes_agree_with_dots(
     // A plane fitted to the phase of a tilted grid takes in the mean of its quadratic term,
     // |p|·⟨u²⟩ over its pixels: at most |p|₁·h²/3 for pixels inside the marker (0.03–0.05
     // ·|p|₁·h² seen for the windows on keystoned real images).
-    let h = (dots.size - 1) as f64 / 2.0;
+    let h = dots.half_width();
     let tilt_bias = dots.perspective.abs().sum() * h * h / 3.0;
     let allowed = MAX_CENTRE_DISAGREEMENT + tilt_bias + CENTRE_SIGMAS * dots_std.hypot(planes_std);
     match apart <= allowed {

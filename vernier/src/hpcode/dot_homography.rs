@@ -89,7 +89,7 @@ pub(crate) fn fit_dot_homography(
         grid: *grid,
         center_std: f64::NAN,
     };
-    let h = (grid.size - 1) as f64 / 2.0;
+    let h = grid.half_width();
     for round in 0..ROUNDS {
         // The first round measures the inner half of the field only, where the start grid is
         // close enough that no block's phase wraps; the later ones, on the grid it gives, all.
@@ -156,7 +156,7 @@ fn measure_blocks(
     grid: &DotGrid,
     reach: f64,
 ) -> Vec<BlockFix> {
-    let h = (grid.size - 1) as f64 / 2.0;
+    let h = grid.half_width();
     let measured: Vec<(BlockFix, f64)> = block_centers(grid.size)
         .map(|(r, c)| (r as f64, c as f64))
         .filter(|&(r, c)| (r - h).abs().max((c - h).abs()) <= reach)
@@ -270,7 +270,7 @@ fn fit_robust(blocks: &[BlockFix], like: &DotGrid) -> Option<DotFit> {
         let mut distances: Vec<f64> = kept.iter().map(residual_of(&fitted, period)).collect();
         center_std = robust_sigma(&mut distances) / (kept.len() as f64).sqrt();
     }
-    let h = (like.size - 1) as f64 / 2.0;
+    let h = like.half_width();
     let depth_change = fitted.perspective.abs().sum() * h;
     (depth_change <= MAX_DEPTH_CHANGE).then_some(DotFit {
         grid: fitted,
@@ -280,13 +280,7 @@ fn fit_robust(blocks: &[BlockFix], like: &DotGrid) -> Option<DotFit> {
 
 /// A block's distance from where `grid` puts it, in periods of `period` pixels.
 fn residual_of(grid: &DotGrid, period: f64) -> impl Fn(&BlockFix) -> f64 + '_ {
-    move |b| (point(grid, b.u) - b.seen).norm() / period
-}
-
-/// Image position of the dot at dot coordinates `u` from the centre under `grid`.
-fn point(grid: &DotGrid, u: Vector2<f64>) -> Vector2<f64> {
-    let h = (grid.size - 1) as f64 / 2.0;
-    grid.at(u.y + h, u.x + h)
+    move |b| (grid.at_marker(b.u) - b.seen).norm() / period
 }
 
 /// Least-squares homography `x = (A·u + t)/(1 + p·u)` through the blocks, in its linear form

@@ -220,9 +220,8 @@ pub(crate) fn refine_on_field(
     });
     let (cx, cy) = image.center();
     let origin = Vector2::new(cx as f64, cy as f64);
-    let steps = Matrix2::from_columns(&[dots.step_x, dots.step_y]);
-    let to_index = steps.try_inverse()?;
-    let h = (n - 1) as f64 / 2.0;
+    let to_index = dots.steps().try_inverse()?;
+    let h = dots.half_width();
     // φ_x = 2π·c, φ_y = 2π·r at dot (r, c): dot index = h + S⁻¹·(p − centre).
     let plane = |k: usize| {
         let row = to_index.row(k);

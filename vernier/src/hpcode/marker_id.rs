@@ -51,10 +51,25 @@ impl DotGrid {
 
     /// Image position of the point at dot coordinates `(r, c)` (fractional allowed).
     pub(crate) fn at(&self, r: f64, c: f64) -> Vector2<f64> {
-        let h = (self.size - 1) as f64 / 2.0;
-        let u = Vector2::new(c - h, r - h);
+        let h = self.half_width();
+        self.at_marker(Vector2::new(c - h, r - h))
+    }
+
+    /// Image position of the point at marker coordinates `u = (c − h, r − h)` (periods from
+    /// the centre dot along the pattern axes); [`DotGrid::marker_coordinates`] is its inverse.
+    pub(crate) fn at_marker(&self, u: Vector2<f64>) -> Vector2<f64> {
         let depth = 1.0 + self.perspective.dot(&u);
         self.center + (self.step_x * u.x + self.step_y * u.y) / depth
+    }
+
+    /// Half the field's width `h = (n − 1)/2`, periods: the centre dot's index on both axes.
+    pub(crate) fn half_width(&self) -> f64 {
+        (self.size - 1) as f64 / 2.0
+    }
+
+    /// The steps at the centre as the columns of a matrix, image pixels per period.
+    pub(crate) fn steps(&self) -> nalgebra::Matrix2<f64> {
+        nalgebra::Matrix2::from_columns(&[self.step_x, self.step_y])
     }
 
     /// The same homography with its dots renumbered so that the dot at marker coordinates
@@ -62,8 +77,7 @@ impl DotGrid {
     pub(crate) fn renumbered(&self, shift: Vector2<f64>) -> DotGrid {
         // x = (A·u + t)/(1 + p·u) with A = S + t·pᵀ; for u = u' + k, divide through by
         // d = 1 + p·k: t' = x(k), A' = A/d, p' = p/d.
-        let steps = nalgebra::Matrix2::from_columns(&[self.step_x, self.step_y]);
-        let a = steps + self.center * self.perspective.transpose();
+        let a = self.steps() + self.center * self.perspective.transpose();
         let depth = 1.0 + self.perspective.dot(&shift);
         let center = (a * shift + self.center) / depth;
         let perspective = self.perspective / depth;
@@ -83,8 +97,7 @@ impl DotGrid {
     pub(crate) fn marker_coordinates(&self, p: Vector2<f64>) -> Option<Vector2<f64>> {
         // d·(1 + p·u) = S·u for d = p − centre, so (S − d·pᵀ)·u = d.
         let d = p - self.center;
-        let steps = nalgebra::Matrix2::from_columns(&[self.step_x, self.step_y]);
-        Some((steps - d * self.perspective.transpose()).try_inverse()? * d)
+        Some((self.steps() - d * self.perspective.transpose()).try_inverse()? * d)
     }
 }
 
