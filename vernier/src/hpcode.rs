@@ -47,9 +47,11 @@ use std::f64::consts::{FRAC_PI_2, PI, TAU};
 const MIN_PRECHECK: f64 = 0.7;
 /// Most two-finder hypotheses tried per image (each costs one window analysis).
 const MAX_HYPOTHESES: usize = 48;
-/// Rounds of finder triples measured ([`HpCodeDetector::detect`]): the disjoint best-fitting
-/// ones, then those whose finders the triples without a marker freed, twice.
-const GROUPING_ROUNDS: usize = 3;
+/// Most finder triples measured per image ([`HpCodeDetector::detect`]), a bound on the cost of
+/// hostile input (a texture of finder-like shapes): a triple that is no marker mostly fails
+/// the grid pre-check (a few hundred samples), at worst one window analysis. The real images
+/// and stress scenes have at most a few dozen candidate triples, all of which are tried.
+const MAX_TRIPLES: usize = 256;
 /// Smallest fraction of the marker's dots and gaps that must look right
 /// ([`marker_id::grid_support`]); dust and hair may spoil the rest.
 const MIN_GRID_SUPPORT: f64 = 0.75;
@@ -354,6 +356,7 @@ impl HpCodeDetector {
         if let Some(p) = self.params.polarity {
             finders.retain(|f| f.polarity == p);
         }
+        log::trace!("finders: {finders:?}");
         finders
     }
 
@@ -364,20 +367,26 @@ impl HpCodeDetector {
         let candidates = candidate_triples(&finders, self.params.code_size);
         let mut tried = vec![false; candidates.len()];
         let mut markers: Vec<HpCodeMarker> = Vec::new();
-        // Rounds of disjoint triples, best fit first: a triple that gives no marker frees its
-        // finders for the next round's. Across two markers, finders can fit a right angle with
-        // equal legs better than a marker's own, which perspective makes unequal.
-        for _ in 0..GROUPING_ROUNDS {
+        // Rounds of disjoint triples, best fit first, until every candidate has been tried: a
+        // triple that gives no marker frees its finders for the next round's. Across two
+        // markers, finders can fit a right angle with equal legs better than a marker's own,
+        // which a tilt shears and perspective makes unequal (two markers side by side, tilted
+        // by 25°, gave four better-fitting triples across them).
+        let mut measured = 0;
+        while measured < MAX_TRIPLES {
             let taken = taken_finders(&finders, &markers);
-            let triples: Vec<FinderTriple> = disjoint_triples(&candidates, &taken, &mut tried)
+            let round = disjoint_triples(&candidates, &taken, &mut tried);
+            if round.is_empty() {
+                break;
+            }
+            let mut triples: Vec<FinderTriple> = round
                 .into_iter()
                 .map(|k| candidates[k].0)
                 // Another triple of a marker found (a finder read twice).
                 .filter(|t| !near_a_marker(&markers, t))
                 .collect();
-            if triples.is_empty() {
-                break;
-            }
+            triples.truncate(MAX_TRIPLES - measured);
+            measured += triples.len();
             markers.extend(self.measure_all(image, &triples)?);
         }
         // Markers with a finder missing (dust, damage): hypotheses from the finders left over,
@@ -646,10 +655,13 @@ impl Measure<'_> {
             return reject("dot field does not end at its bottom and right edges");
         }
         // Three finder-like shapes around something that is not this marker's dot grid.
-        if !marker_id::corners_consistent(image, triple.polarity, &dots) {
+        let Some(light) = marker_id::FieldLight::measure(image, triple.polarity, &dots) else {
+            return reject("dot field outside the image");
+        };
+        if !marker_id::corners_consistent(image, triple.polarity, &dots, &light) {
             return reject("corners do not show three finders and a block of dots");
         }
-        let support = marker_id::grid_support(image, triple.polarity, &dots);
+        let support = marker_id::grid_support(&light);
         if support < MIN_GRID_SUPPORT {
             return reject(&format!("grid support {support:.3} < {MIN_GRID_SUPPORT}"));
         }

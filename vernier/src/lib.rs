@@ -90,6 +90,7 @@ pub mod layout;
 pub mod limits;
 pub use error::{Error, Result};
 pub mod grey_image;
+mod level_surface;
 mod lru;
 pub mod megarena_sequence;
 mod order_stats;

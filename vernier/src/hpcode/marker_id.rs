@@ -10,6 +10,7 @@
 //! back, e.g. a flipped image) shows its ID there instead.
 
 use crate::grey_image::{GreyImage, Polarity};
+use crate::level_surface::{LevelSample, LevelSurface};
 use crate::order_stats::robust_sigma;
 use nalgebra::Vector2;
 use std::f64::consts::PI;
@@ -252,17 +253,19 @@ fn read_edge(
     let signed: Vec<f64> = (0..samples.levels.len())
         .map(|i| samples.signed_within(i, 1, samples.levels[i]))
         .collect();
-    let occlusion = match judge_occluders {
-        true => samples.occlusion_margins(&signed),
-        false => vec![1.0; signed.len()],
+    let (occlusion, empty) = match judge_occluders {
+        true => (samples.occlusion_margins(&signed), samples.empty_level()),
+        false => (vec![1.0; signed.len()], -1.0),
     };
-    log::trace!("edge {edge:?} dot margins {signed:.2?}, occlusion margins {occlusion:.2?}");
+    log::trace!(
+        "edge {edge:?} dot margins {signed:.2?}, occlusion margins {occlusion:.2?}, empty {empty:.2}"
+    );
     // levels[i] is dot column 4 + i; bit k is dot column n − 5 − k.
     let bits: Vec<bool> = signed.iter().rev().map(|&s| s < 0.0).collect();
     let margin = signed
         .iter()
         .zip(&occlusion)
-        .map(|(&s, &o)| bit_margin(s).min(o.clamp(0.0, 1.0)))
+        .map(|(&s, &o)| bit_margin(s, empty).min(o.clamp(0.0, 1.0)))
         .fold(1.0f64, f64::min);
     let mut sorted = signed.clone();
     sorted.sort_by(f64::total_cmp);
@@ -359,6 +362,25 @@ impl<'a> EdgeSamples<'a> {
         let lo = median_or_nan(&mut self.background[2 * dots.start..2 * dots.end].to_vec());
         let half = (0.5 * (hi - lo)).max(0.5 * self.half());
         (level - 0.5 * (hi + lo)) / half
+    }
+
+    /// Signed level ([`EdgeSamples::signed_within`]) where no dot is drawn: the median over
+    /// the edge's columns of the position one period outside the edge, never above −1 (the
+    /// gaps'). Blur lifts the gaps, between four dots' corners, far more than an empty dot
+    /// position, whose nearest dots are a period away: a blurred missing dot reads well below
+    /// −1 (−1.8 to −2.3 beside the dots of `HPCodeImage_20um.png` blurred by 2 px, −1.0 to −1.1
+    /// on sharp images). −1 where no such position lies inside the image.
+    fn empty_level(&self) -> f64 {
+        let mut outside: Vec<f64> = (0..self.levels.len())
+            .filter_map(|i| {
+                let level = dot_level(self.image, self.polarity, self.at(i, -1.0, 0.0), self.grid)?;
+                Some(self.signed_within(i, 1, level))
+            })
+            .collect();
+        match outside.is_empty() {
+            true => -1.0,
+            false => median_or_nan(&mut outside).min(-1.0),
+        }
     }
 
     /// Per dot (read as `signed`), how clearly no occluder made its reading
@@ -545,19 +567,26 @@ pub(crate) fn field_ends_at_its_edges(
 }
 
 /// How clearly a dot of signed level `s` (half contrasts from the threshold: +1 a present
-/// dot's level, −1 the background's) reads as what it reads, in `[0, 1]`. Occluders that hide
-/// material (a dark hair or dust over a bright dot, bright residue over a dark one; the usual
-/// kind) put a present dot anywhere between the two levels, never a missing one above the
-/// background, so the two readings do not weigh the same:
+/// dot's level, −1 the background's between four dots) reads as what it reads, in `[0, 1]`;
+/// `empty` (≤ −1) is the level of a position where no dot is drawn
+/// ([`EdgeSamples::empty_level`]). Occluders that hide material (a dark hair or dust over a
+/// bright dot, bright residue over a dark one; the usual kind) put a present dot anywhere
+/// between the two levels, never a missing one above the background, so the two readings do
+/// not weigh the same:
 ///
 /// * present (`s ≥ 0`): `s`, its distance above the threshold — a missing dot does not get
 ///   there;
-/// * missing (`s < 0`): `−2s − 1`, its distance below the middle of the lower band (`s =
-///   −½`) in units of that half band. A dot halfway down to the background may be a present
-///   dot under a hair (`code22.tif`) or at a cut edge (`code21.jpg`); read as missing, it
-///   would give another marker's ID.
-fn bit_margin(s: f64) -> f64 {
-    let margin = if s >= 0.0 { s } else { -2.0 * s - 1.0 };
+/// * missing (`s < 0`): `2s/empty − 1`, its distance below the middle of the lower band (`s =
+///   empty/2`) in units of that half band (`−2s − 1` on sharp images, where `empty` is −1). A
+///   dot halfway down to the empty level may be a present dot under a hair (`code22.tif`; blurred
+///   by 2 px, its hair hides the dot to −0.84 while an empty position reads −1.8) or at a cut
+///   edge (`code21.jpg`); read as missing, it would give another marker's ID.
+fn bit_margin(s: f64, empty: f64) -> f64 {
+    let margin = if s >= 0.0 {
+        s
+    } else {
+        2.0 * s / empty.min(-1.0) - 1.0
+    };
     margin.clamp(0.0, 1.0)
 }
 
@@ -604,54 +633,103 @@ fn reference_shifts(
     )
 }
 
-/// Fraction of the marker's grid that looks as it should, `[0, 1]`: every dot outside the
-/// finders and the two ID edges present, every gap between four dots empty, both against the
-/// threshold halfway between their medians. 0 when the dots are not brighter than the gaps or a
-/// sample falls outside the image. The check that a finder triple encloses a real dot grid
-/// (clutter that happens to look like three finders does not), tolerant of dust and hair over
-/// a part of the marker.
-pub(crate) fn grid_support(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> f64 {
-    let n = grid.size;
-    if n < 9 {
-        return 0.0;
-    }
-    // Dot (r, c) lies in a finder's 4×4 dots at three corners.
-    let in_finder = |r: usize, c: usize| (r < 4 && (c < 4 || c + 4 >= n)) || (r + 4 >= n && c < 4);
-    let mut dots = Vec::with_capacity(n * n);
-    let mut gaps = Vec::with_capacity(n * n);
-    for r in 1..n {
-        for c in 1..n {
-            if !in_finder(r, c) {
-                let Some(v) = dot_level(image, polarity, grid.at(r as f64, c as f64), grid) else {
-                    return 0.0;
-                };
-                dots.push(v);
-            }
-            // The gap up-left of dot (r, c), between four dots of which none is in a finder.
-            if !(in_finder(r - 1, c - 1)
-                || in_finder(r, c)
-                || in_finder(r - 1, c)
-                || in_finder(r, c - 1))
-            {
-                let p = grid.at(r as f64 - 0.5, c as f64 - 0.5);
-                let Some(v) = dot_level(image, polarity, p, grid) else {
-                    return 0.0;
-                };
-                gaps.push(v);
+/// The light over a marker's dot field (docs/design.md#level-surfaces): smooth surfaces of the
+/// material level ([`dot_level`]) of its dots, of the bridges between two neighbouring dots
+/// and of the gaps between four, each fitted across the grid to every such place outside the
+/// finders and the two ID edges (dots that are always drawn). Positions are grid columns and
+/// rows. Each reading is then judged against the light where it is: a steep illumination
+/// gradient or vignette over a marker of low contrast moves the level by more than the dots'
+/// contrast between one corner and the other, so one threshold for the marker (or one taken a
+/// few dots away) reads a whole corner as ink or as none.
+pub(crate) struct FieldLight {
+    /// The dots' levels, `[column, row, level]`.
+    dots: Vec<LevelSample>,
+    /// The gaps' levels, likewise.
+    gaps: Vec<LevelSample>,
+    dot: LevelSurface,
+    bridge: LevelSurface,
+    gap: LevelSurface,
+}
+
+impl FieldLight {
+    /// Samples and fits the light of `grid`'s field; `None` when a sample falls outside the
+    /// image or the grid is too small to have a field (`n < 9`).
+    pub(crate) fn measure(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> Option<Self> {
+        let n = grid.size;
+        if n < 9 {
+            return None;
+        }
+        // Dot (r, c) is always drawn: inside the grid, off the ID edges (row and column 0),
+        // outside the finders' 4×4 dots at three corners.
+        let in_finder =
+            |r: usize, c: usize| (r < 4 && (c < 4 || c + 4 >= n)) || (r + 4 >= n && c < 4);
+        let drawn =
+            |r: usize, c: usize| (1..n).contains(&r) && (1..n).contains(&c) && !in_finder(r, c);
+        let level = |r: f64, c: f64| -> Option<LevelSample> {
+            Some([c, r, dot_level(image, polarity, grid.at(r, c), grid)?])
+        };
+        let (mut dots, mut bridges, mut gaps) = (Vec::new(), Vec::new(), Vec::new());
+        for r in 1..n {
+            for c in 1..n {
+                if !drawn(r, c) {
+                    continue;
+                }
+                let (rf, cf) = (r as f64, c as f64);
+                dots.push(level(rf, cf)?);
+                if drawn(r, c + 1) {
+                    bridges.push(level(rf, cf + 0.5)?);
+                }
+                if drawn(r + 1, c) {
+                    bridges.push(level(rf + 0.5, cf)?);
+                }
+                if drawn(r + 1, c + 1) && drawn(r, c + 1) && drawn(r + 1, c) {
+                    gaps.push(level(rf + 0.5, cf + 0.5)?);
+                }
             }
         }
+        let last = (n - 1) as f64;
+        let fit = |samples: &[LevelSample]| LevelSurface::fit(samples, [0.0; 2], [last; 2]);
+        Some(FieldLight {
+            dot: fit(&dots)?,
+            bridge: fit(&bridges)?,
+            gap: fit(&gaps)?,
+            dots,
+            gaps,
+        })
     }
-    let (hi, lo) = (
-        median_or_nan(&mut dots.clone()),
-        median_or_nan(&mut gaps.clone()),
+
+    /// Material level halfway between the dots' and the gaps' at grid row `r`, column `c`.
+    fn dot_or_gap(&self, r: f64, c: f64) -> f64 {
+        0.5 * (self.dot.at(c, r) + self.gap.at(c, r))
+    }
+
+    /// Material level halfway between the dots' and the bridges' at grid row `r`, column `c`
+    /// (blur lifts the bridges towards the dots, while a finder's solid ring stays at least as
+    /// bright as a dot).
+    fn dot_or_bridge(&self, r: f64, c: f64) -> f64 {
+        0.5 * (self.dot.at(c, r) + self.bridge.at(c, r))
+    }
+}
+
+/// Fraction of the marker's grid that looks as it should, `[0, 1]`: every dot outside the
+/// finders and the two ID edges present, every gap between four such dots empty, each against
+/// the light where it is ([`FieldLight`]). 0 when the dots are not brighter than the gaps. The
+/// check that a finder triple encloses a real dot grid (clutter that happens to look like
+/// three finders does not: a smooth surface cannot follow it), tolerant of dust and hair over a
+/// part of the marker.
+pub(crate) fn grid_support(light: &FieldLight) -> f64 {
+    let (mut dots, mut gaps) = (
+        light.dots.iter().map(|s| s[2]).collect::<Vec<_>>(),
+        light.gaps.iter().map(|s| s[2]).collect::<Vec<_>>(),
     );
+    let (hi, lo) = (median_or_nan(&mut dots), median_or_nan(&mut gaps));
     if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
         return 0.0;
     }
-    let threshold = 0.5 * (hi + lo);
-    let good = dots.iter().filter(|&&v| v > threshold).count()
-        + gaps.iter().filter(|&&v| v < threshold).count();
-    good as f64 / (dots.len() + gaps.len()) as f64
+    let threshold = |s: &LevelSample| light.dot_or_gap(s[1], s[0]);
+    let good = light.dots.iter().filter(|s| s[2] > threshold(s)).count()
+        + light.gaps.iter().filter(|s| s[2] < threshold(s)).count();
+    good as f64 / (light.dots.len() + light.gaps.len()) as f64
 }
 
 /// Cheap test, before any phase analysis, that a dot grid surrounds `center`: on the 7×7 lattice of
@@ -737,41 +815,38 @@ const UNTILTED_SHIFTS: [(f64, f64); 2] = [(0.0, 0.0), (0.5, 0.5)];
 /// the test, no finder corner may look like plain dots (most dots present, almost no bridges):
 /// an occluded finder shows all ink or none, plain dots are the other corner of a reading
 /// turned by a quarter turn.
-pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> bool {
+pub(crate) fn corners_consistent(
+    image: &GreyImage,
+    polarity: Polarity,
+    grid: &DotGrid,
+    light: &FieldLight,
+) -> bool {
     let n = grid.size;
     if n < 9 {
         return false;
     }
     // Ink fractions of the bridges, the diagonals and the dots of the 4×4 dots from (r0, c0),
-    // against the threshold of the 4×4 inner dots next to that corner: vignetting or an
-    // illumination gradient may move the level by more than the dot contrast across the
-    // marker (all ink at one corner, none at the other, against one threshold), and the
-    // nearest block keeps dust over one block to its own corner. A block whose dots do not
-    // stand out from its bridges (dust over most of it) takes the threshold of all the inner
-    // dots instead, a median that dust over a minority of them does not move.
-    let inner = 4..n - 4;
+    // each against the light where it is ([`FieldLight`]): vignetting or an illumination
+    // gradient may move the level by more than the dot contrast across the marker, and the
+    // surfaces leave dust over a few dots out.
     let corner = |(r0, c0): (usize, usize)| -> Option<(f64, f64, f64)> {
-        let (rows, cols) = (inner_block(r0, n), inner_block(c0, n));
-        let threshold = bridge_threshold(image, polarity, grid, rows, cols)
-            .or_else(|| bridge_threshold(image, polarity, grid, inner.clone(), inner.clone()))?;
-        let ink = |p: Vector2<f64>| -> Option<f64> {
-            Some(f64::from(u8::from(
-                dot_level(image, polarity, p, grid)? > threshold,
-            )))
+        let ink = |r: f64, c: f64| -> Option<f64> {
+            let level = dot_level(image, polarity, grid.at(r, c), grid)?;
+            Some(f64::from(u8::from(level > light.dot_or_bridge(r, c))))
         };
         let (mut bridges, mut diagonals, mut dots) = (0.0, 0.0, 0.0);
         for r in r0..r0 + 4 {
             for c in c0..c0 + 4 {
                 let (rf, cf) = (r as f64, c as f64);
-                dots += ink(grid.at(rf, cf))?;
+                dots += ink(rf, cf)?;
                 if c + 1 < c0 + 4 {
-                    bridges += ink(grid.at(rf, cf + 0.5))?;
+                    bridges += ink(rf, cf + 0.5)?;
                 }
                 if r + 1 < r0 + 4 {
-                    bridges += ink(grid.at(rf + 0.5, cf))?;
+                    bridges += ink(rf + 0.5, cf)?;
                 }
                 if c + 1 < c0 + 4 && r + 1 < r0 + 4 {
-                    diagonals += ink(grid.at(rf + 0.5, cf + 0.5))?;
+                    diagonals += ink(rf + 0.5, cf + 0.5)?;
                 }
             }
         }
@@ -817,40 +892,6 @@ pub(crate) fn corners_consistent(image: &GreyImage, polarity: Polarity, grid: &D
 /// ([`corners_consistent`]): a sharp finder shows 13 of 24 bridges (0.54), blur more; a dot
 /// corner that dust partly fills, less.
 const HIDDEN_DOT_CORNER_MIN_BRIDGES: f64 = 0.5;
-
-/// The four rows (or columns) of inner dots `4..n − 4` next to the corner block that starts at
-/// `start` (0 or `n − 4`); all of them when there are fewer (`n ≥ 9`).
-fn inner_block(start: usize, n: usize) -> std::ops::Range<usize> {
-    if start == 0 {
-        4..(n - 4).min(8)
-    } else {
-        (n - 8).max(4)..n - 4
-    }
-}
-
-/// Threshold halfway between the median level of the inner dots in `rows` × `cols` and of the
-/// bridges beside them (which blur lifts towards the dots, while a finder's solid ring stays at
-/// least as bright as a dot); `None` when the dots do not stand out or a sample is outside the
-/// image.
-fn bridge_threshold(
-    image: &GreyImage,
-    polarity: Polarity,
-    grid: &DotGrid,
-    rows: std::ops::Range<usize>,
-    cols: std::ops::Range<usize>,
-) -> Option<f64> {
-    let (mut dots, mut bridges) = (Vec::new(), Vec::new());
-    for r in rows {
-        for c in cols.clone() {
-            let (r, c) = (r as f64, c as f64);
-            dots.push(dot_level(image, polarity, grid.at(r, c), grid)?);
-            bridges.push(dot_level(image, polarity, grid.at(r, c + 0.5), grid)?);
-            bridges.push(dot_level(image, polarity, grid.at(r + 0.5, c), grid)?);
-        }
-    }
-    let (hi, lo) = (median_or_nan(&mut dots), median_or_nan(&mut bridges));
-    (hi > lo).then_some(0.5 * (hi + lo))
-}
 
 /// Rank (ascending, of 9) of the sample taken as a dot's level: the third highest. Occluders
 /// that hide material (a dark hair over a bright dot, bright dust over a dark one) lower some

@@ -12,6 +12,7 @@
 
 use super::thumbnail::Thumbnail;
 use crate::layout::BitmapLayout;
+use crate::level_surface::{LevelSample, LevelSurface};
 
 /// One of the 8 dihedral transforms from thumbnail cell axes to bitmap cell axes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -110,7 +111,8 @@ pub(crate) struct Match {
     pub orientation: Orientation,
     /// Thumbnail cell `(i1, i2)` of the bitmap's central dot (both even).
     pub origin_cell: [i64; 2],
-    /// Pearson correlation of the winner, `[−1, 1]`.
+    /// Pearson correlation of the winner, `[−1, 1]`: of its levels flattened for the light
+    /// ([`CellReader`]) when it has isolated dots and open gaps, of the raw levels otherwise.
     pub correlation: f64,
     /// Cell vote of the winner against its rivals, `[−1, 1]`: on the thumbnail cells where
     /// the winner and a rival predict different values, `(agreeing − disagreeing)/compared`
@@ -268,7 +270,15 @@ pub(crate) fn best_match(
             .filter(|&k| k != winner.bitmap)
             .map(|bitmap| Hypothesis { bitmap, ..winner }),
     );
-    let vote = cell_vote(thumb, templates, &winner, &rivals);
+    // The winner's cells read on levels flattened for the light: an illumination gradient
+    // over a stamp of low contrast lowers the correlation of raw levels (0.43 for stamp G of
+    // `stampPatternImage_15um.jpg` at contrast × 0.3 under a gain from 0.3 to 1).
+    let reader = CellReader::new(thumb, templates, &winner);
+    let correlation = reader
+        .as_ref()
+        .and_then(|r| r.correlation(thumb, |i| predicts_set(templates, &winner, i)))
+        .unwrap_or(correlation);
+    let vote = cell_vote(thumb, templates, &winner, reader.as_ref(), &rivals);
     log::trace!("match {winner:?} r {correlation:.3} vote {vote:.3}; rivals {rivals:?}");
     Some(Match {
         bitmap: winner.bitmap,
@@ -279,68 +289,13 @@ pub(crate) fn best_match(
     })
 }
 
-/// Fewest isolated dots and open gaps for a quadratic fit of their levels across the
-/// thumbnail ([`CellReader`]); with fewer, their mean levels are the references.
-const MIN_SURFACE_CELLS: usize = 24;
 /// Smallest local contrast between the fitted dot and gap levels, in units of the whole
 /// thumbnail's: where a fitted surface strays (beyond the field, where no dot is), the
 /// flattened levels would blow up.
 const MIN_CONTRAST_FRACTION: f64 = 0.25;
 
-/// A smooth surface of grey levels over the thumbnail: a quadratic in the cell position, or a
-/// constant.
-#[derive(Clone, Copy, Debug)]
-struct LevelSurface {
-    /// Coefficients of `1, x, y, x², x·y, y²`, `x` and `y` the cell position scaled to
-    /// `[−1, 1]` across the thumbnail.
-    coefficients: [f64; 6],
-}
-
-impl LevelSurface {
-    /// Basis functions at thumbnail index `(c, r)` of a `len` thumbnail.
-    fn basis(len: [usize; 2], c: usize, r: usize) -> [f64; 6] {
-        let scaled = |v: usize, n: usize| 2.0 * v as f64 / n.max(2) as f64 - 1.0;
-        let (x, y) = (scaled(c, len[0]), scaled(r, len[1]));
-        [1.0, x, y, x * x, x * y, y * y]
-    }
-
-    /// Least-squares fit to `samples` (`(c, r, level)`): a quadratic when there are
-    /// [`MIN_SURFACE_CELLS`], their mean when fewer; `None` without any.
-    fn fit(len: [usize; 2], samples: &[(usize, usize, f64)]) -> Option<Self> {
-        if samples.is_empty() {
-            return None;
-        }
-        let constant = LevelSurface {
-            coefficients: [mean_level(samples), 0.0, 0.0, 0.0, 0.0, 0.0],
-        };
-        if samples.len() < MIN_SURFACE_CELLS {
-            return Some(constant);
-        }
-        let mut normal = nalgebra::Matrix6::<f64>::zeros();
-        let mut rhs = nalgebra::Vector6::<f64>::zeros();
-        for &(c, r, v) in samples {
-            let b = nalgebra::Vector6::from(Self::basis(len, c, r));
-            normal += b * b.transpose();
-            rhs += b * v;
-        }
-        // Cells bunched in part of the thumbnail leave the quadratic undetermined.
-        Some(match normal.cholesky() {
-            Some(ch) => LevelSurface {
-                coefficients: ch.solve(&rhs).into(),
-            },
-            None => constant,
-        })
-    }
-
-    /// Level at thumbnail index `(c, r)`.
-    fn at(&self, len: [usize; 2], c: usize, r: usize) -> f64 {
-        let b = Self::basis(len, c, r);
-        (0..6).map(|k| b[k] * self.coefficients[k]).sum()
-    }
-}
-
-/// Cells of a thumbnail as `(c, r, level)`, `(c, r)` the thumbnail index.
-type CellSamples = Vec<(usize, usize, f64)>;
+/// Cells of a thumbnail as `[c, r, level]`, `(c, r)` the thumbnail index.
+type CellSamples = Vec<LevelSample>;
 
 /// The seen cells of `thumb` that show the lattice's own levels under a hypothesis (`set`
 /// says which cells it predicts set): the isolated dots (dot cells predicted set, their four
@@ -364,8 +319,8 @@ fn lattice_references(
             };
             let i = thumb.cell(c as i64, r as i64);
             match (i[0].rem_euclid(2), i[1].rem_euclid(2)) {
-                (0, 0) if set(i) && sides_unset(i) => dots.push((c, r, v as f64)),
-                (1, 1) if !set(i) && sides_unset(i) => gaps.push((c, r, v as f64)),
+                (0, 0) if set(i) && sides_unset(i) => dots.push([c as f64, r as f64, v as f64]),
+                (1, 1) if !set(i) && sides_unset(i) => gaps.push([c as f64, r as f64, v as f64]),
                 _ => {}
             }
         }
@@ -374,8 +329,8 @@ fn lattice_references(
 }
 
 /// Mean level of cell samples `(c, r, level)` (NaN for none).
-fn mean_level(samples: &[(usize, usize, f64)]) -> f64 {
-    samples.iter().map(|s| s.2).sum::<f64>() / samples.len() as f64
+fn mean_level(samples: &[LevelSample]) -> f64 {
+    samples.iter().map(|s| s[2]).sum::<f64>() / samples.len() as f64
 }
 
 /// Reads the thumbnail's cells as set or unset under a hypothesis, on levels flattened for the
@@ -398,6 +353,8 @@ struct CellReader {
     /// Set cells read above the threshold (always so on flattened levels; raw levels of dark
     /// dots read below it).
     bright_set: bool,
+    /// Whether the levels are flattened (the hypothesis has isolated dots and open gaps).
+    flattened: bool,
 }
 
 impl CellReader {
@@ -406,9 +363,11 @@ impl CellReader {
         let [cols, rows] = thumb.len;
         let set = |i: [i64; 2]| predicts_set(templates, h, i);
         let (dots, gaps) = lattice_references(thumb, &set);
+        // Cell positions scaled from the thumbnail's extent (at least two cells).
+        let extent = [cols.max(2) as f64, rows.max(2) as f64];
+        let fit = |samples: &[LevelSample]| LevelSurface::fit(samples, [0.0, 0.0], extent);
         // Without isolated dots or open gaps (a bitmap of solid shapes): levels as they are.
-        let references =
-            LevelSurface::fit(thumb.len, &dots).zip(LevelSurface::fit(thumb.len, &gaps));
+        let references = fit(&dots).zip(fit(&gaps));
         let whole_contrast = match references {
             Some(_) => mean_level(&dots) - mean_level(&gaps),
             None => 1.0,
@@ -421,7 +380,7 @@ impl CellReader {
                 let Some((dot, gap)) = references else {
                     return Some(v);
                 };
-                let (dot, gap) = (dot.at(thumb.len, c, r), gap.at(thumb.len, c, r));
+                let (dot, gap) = (dot.at(c as f64, r as f64), gap.at(c as f64, r as f64));
                 let contrast = whole_contrast.signum()
                     * ((dot - gap) * whole_contrast.signum()).max(min_contrast);
                 Some((v - gap) / contrast)
@@ -445,7 +404,29 @@ impl CellReader {
             cols,
             threshold: (m1 + m0) / 2.0,
             bright_set: m1 > m0,
+            flattened: references.is_some(),
         })
+    }
+
+    /// Pearson correlation of the flattened levels with the cells `set` predicts (1 set, 0
+    /// unset), over the seen cells: the thumbnail's correlation with the bitmap once the light
+    /// is taken out. `None` on raw levels or when either side does not vary.
+    fn correlation(&self, thumb: &Thumbnail, set: impl Fn([i64; 2]) -> bool) -> Option<f64> {
+        if !self.flattened {
+            return None;
+        }
+        let (mut n, mut sx, mut sy, mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+        for (k, level) in self.levels.iter().enumerate() {
+            let Some(x) = *level else { continue };
+            let y = f64::from(u8::from(set(
+                thumb.cell((k % self.cols) as i64, (k / self.cols) as i64)
+            )));
+            n += 1.0;
+            (sx, sy) = (sx + x, sy + y);
+            (sxx, syy, sxy) = (sxx + x * x, syy + y * y, sxy + x * y);
+        }
+        let (vx, vy) = (sxx - sx * sx / n, syy - sy * sy / n);
+        (vx > 0.0 && vy > 0.0).then(|| (sxy - sx * sy / n) / (vx * vy).sqrt())
     }
 
     /// Whether the cell at thumbnail index `(c, r)` (inside the thumbnail) reads as set;
@@ -497,10 +478,11 @@ fn cell_vote(
     thumb: &Thumbnail,
     templates: &[Template],
     winner: &Hypothesis,
+    reader: Option<&CellReader>,
     rivals: &[Hypothesis],
 ) -> f64 {
     let cells: Vec<[i64; 2]> = seen_cells(thumb).collect();
-    let Some(reader) = CellReader::new(thumb, templates, winner) else {
+    let Some(reader) = reader else {
         return 0.0;
     };
     // Whether the cell at thumbnail index (col, row) reads as the winner predicts (None:
