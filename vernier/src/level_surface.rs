@@ -117,7 +117,7 @@ mod tests {
         for r in 0..30 {
             for c in 0..30 {
                 let (x, y) = (c as f64, r as f64);
-                // A blob over 40 of the 900 samples, far off the light.
+                // A blob over 37 of the 900 samples, far off the light.
                 let dust = (x - 8.0).powi(2) + (y - 20.0).powi(2) < 13.0;
                 samples.push([x, y, light(x, y) + if dust { 0.5 } else { 0.0 }]);
             }
