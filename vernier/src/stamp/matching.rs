@@ -328,7 +328,7 @@ fn lattice_references(
     (dots, gaps)
 }
 
-/// Mean level of cell samples `(c, r, level)` (NaN for none).
+/// Mean level of cell samples `[c, r, level]` (NaN for none).
 fn mean_level(samples: &[LevelSample]) -> f64 {
     samples.iter().map(|s| s[2]).sum::<f64>() / samples.len() as f64
 }

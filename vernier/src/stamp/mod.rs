@@ -273,7 +273,9 @@ pub struct StampDetection {
     pub origin_px: Vector2<f64>,
     /// The marker is seen mirrored (see [`StampParams::allow_mirrored`]).
     pub mirrored: bool,
-    /// Correlation between the thumbnail and the bitmap, `[−1, 1]`.
+    /// Pearson correlation between the thumbnail and the bitmap, `[−1, 1]`, on the thumbnail's
+    /// levels flattened for the light (docs/design.md#stamp-matching; raw levels for a bitmap
+    /// without isolated dots or open gaps).
     pub correlation: f64,
     /// Confidence of the decoding, `[0, 1]`: on the bitmap cells where the winning hypothesis
     /// and a rival (the best other orientation or period shift, and every other bitmap) predict
