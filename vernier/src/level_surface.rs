@@ -51,16 +51,21 @@ impl LevelSurface {
             if round == REFITS {
                 break;
             }
-            let mut residuals: Vec<f64> = inliers
+            let residuals: Vec<f64> = inliers
                 .iter()
                 .map(|s| (s[2] - surface.at(s[0], s[1])).abs())
                 .collect();
-            let cut = OUTLIER_SIGMAS * robust_sigma(&mut residuals);
-            let before = inliers.len();
-            inliers.retain(|s| (s[2] - surface.at(s[0], s[1])).abs() <= cut);
-            if inliers.len() == before || inliers.is_empty() {
+            let cut = OUTLIER_SIGMAS * robust_sigma(&mut residuals.clone());
+            let kept: Vec<LevelSample> = inliers
+                .iter()
+                .zip(&residuals)
+                .filter(|&(_, &r)| r <= cut)
+                .map(|(s, _)| *s)
+                .collect();
+            if kept.len() == inliers.len() || kept.is_empty() {
                 break;
             }
+            inliers = kept;
         }
         Some(surface)
     }

@@ -12,7 +12,7 @@
 //! run the marker checks.
 
 use super::grouping::FinderTriple;
-use super::marker_id::DotGrid;
+use super::marker_id::{in_finder_corner, DotGrid};
 use crate::grey_image::{GreyImage, Polarity};
 use crate::order_stats::robust_sigma;
 use nalgebra::{Matrix2, SMatrix, SVector, Vector2};
@@ -135,16 +135,11 @@ pub(crate) fn finder_renumbering(dots: &DotGrid, triple: &FinderTriple) -> Optio
 /// block lies in the field, clear of row 0 and column 0 (either may carry the ID) and of the
 /// three finders (dots 0–3 in their corners).
 fn block_centers(n: usize) -> impl Iterator<Item = (usize, usize)> {
-    let in_finder = move |r: usize, c: usize| {
-        let (near_r, near_c) = (r <= 3, c <= 3);
-        let (far_r, far_c) = (r + 4 >= n, c + 4 >= n);
-        (near_r && (near_c || far_c)) || (far_r && near_c)
-    };
     let range = move || (2..n.saturating_sub(1)).step_by(BLOCK_STRIDE);
     range()
         .flat_map(move |r| range().map(move |c| (r, c)))
         .filter(move |&(r, c)| {
-            (r - 1..=r + 1).all(|rr| (c - 1..=c + 1).all(|cc| !in_finder(rr, cc)))
+            (r - 1..=r + 1).all(|rr| (c - 1..=c + 1).all(|cc| !in_finder_corner(n, rr, cc)))
         })
 }
 

@@ -633,6 +633,14 @@ fn reference_shifts(
     )
 }
 
+/// Whether dot `(r, c)` of an `n`-dot grid lies in a finder's 4 × 4 dots: the top-left,
+/// top-right and bottom-left corners (rows and columns 0–3 from those sides).
+pub(crate) fn in_finder_corner(n: usize, r: usize, c: usize) -> bool {
+    let (near_r, near_c) = (r < 4, c < 4);
+    let (far_r, far_c) = (r + 4 >= n, c + 4 >= n);
+    (near_r && (near_c || far_c)) || (far_r && near_c)
+}
+
 /// The light over a marker's dot field (docs/design.md#level-surfaces): smooth surfaces of the
 /// material level ([`dot_level`]) of its dots, of the bridges between two neighbouring dots
 /// and of the gaps between four, each fitted across the grid to every such place outside the
@@ -660,11 +668,10 @@ impl FieldLight {
             return None;
         }
         // Dot (r, c) is always drawn: inside the grid, off the ID edges (row and column 0),
-        // outside the finders' 4×4 dots at three corners.
-        let in_finder =
-            |r: usize, c: usize| (r < 4 && (c < 4 || c + 4 >= n)) || (r + 4 >= n && c < 4);
-        let drawn =
-            |r: usize, c: usize| (1..n).contains(&r) && (1..n).contains(&c) && !in_finder(r, c);
+        // outside the finders.
+        let drawn = |r: usize, c: usize| {
+            (1..n).contains(&r) && (1..n).contains(&c) && !in_finder_corner(n, r, c)
+        };
         let level = |r: f64, c: f64| -> Option<LevelSample> {
             Some([c, r, dot_level(image, polarity, grid.at(r, c), grid)?])
         };
