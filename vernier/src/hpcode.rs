@@ -682,14 +682,18 @@ impl Measure<'_> {
             Some((refined, fit)) => {
                 log::debug!(
                     "marker {}: field fit over {} px, {} harmonics, {} iterations, {:.1} % inliers, \
-                         residual σ {:.2e}, orientation σ {:.2e} rad",
+                         residual σ {:.2e}, orientation σ {:.2e} rad, perspective ({:.2e}, \
+                         {:.2e}) per period taken at {:.3}",
                     reading.id,
                     fit.pixels,
                     fit.harmonics,
                     fit.iterations,
                     100.0 * fit.inlier_fraction,
                     fit.residual_std,
-                    fit.mean_direction_std()
+                    fit.mean_direction_std(),
+                    fit.perspective.unwrap_or_default().x,
+                    fit.perspective.unwrap_or_default().y,
+                    fit.tilt_weight
                 );
                 (refined, Some(fit))
             }

@@ -155,7 +155,7 @@ fn fit_whole_image(image: &GreyImage, planes: &[PhasePlane; 2], rival: Rival) ->
     let mask = NodeMask::from_cells(k1.clone(), k2.clone(), |v1, v2| {
         v1.rem_euclid(2) == 0 && v2.rem_euclid(2) == 0 && inside(v1, &k1) && inside(v2, &k2)
     });
-    fit_dot_field_against(image, *planes, &mask, Some(rival))
+    fit_dot_field_against(image, *planes, &mask, Some(rival), None)
 }
 
 /// Pose of the grid from its two planes (image frame; docs/design.md#periodic): the grid

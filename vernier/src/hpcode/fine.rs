@@ -231,7 +231,14 @@ pub(crate) fn refine_on_field(
             c: TAU * (h + (row * (origin - dots.center))[0]),
         }
     };
-    let fit = fit_dot_field_against(image, [plane(0), plane(1)], &mask, Some(rival))?;
+    // The marker centre is node (h, h): the fit measures the tilt about it.
+    let fit = fit_dot_field_against(
+        image,
+        [plane(0), plane(1)],
+        &mask,
+        Some(rival),
+        Some([h, h]),
+    )?;
     let [px, py] = fit.planes;
     let gradients = Matrix2::new(px.a, px.b, py.a, py.b);
     let inverse = gradients.try_inverse()?;

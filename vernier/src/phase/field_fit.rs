@@ -82,7 +82,7 @@ use super::plane::{wrap_to_pi, PhasePlane};
 use super::MIN_NOISE_STD;
 use crate::grey_image::GreyImage;
 use crate::order_stats::{median, robust_sigma, TUKEY_BIWEIGHT};
-use nalgebra::{Matrix6, SVector, Vector2, Vector6};
+use nalgebra::{DMatrix, DVector, Matrix2, Matrix6, SMatrix, SVector, Vector2, Vector6};
 use num_complex::Complex64;
 use std::f64::consts::{PI, TAU};
 
@@ -165,6 +165,9 @@ const LINEAR: usize = 11;
 const MAX_HARMONICS: usize = ((2 * MAX_ORDER + 1) * (2 * MAX_ORDER + 1) - 1) / 2 - 2;
 /// All unknowns: the linear ones and (α, β, γ) of each plane.
 const UNKNOWNS: usize = LINEAR + 6;
+/// The unknowns with those of a tilt ([`Tilt`]): the perspective `(p₁, p₂)`, and the free
+/// harmonics' phase offsets of each plane.
+const TILTED: usize = UNKNOWNS + 4;
 
 /// The layout of a marker's dot field, on the half-period cell grid of the planes given to
 /// [`fit_dot_field`]: cell `(v₁, v₂)` is centred where `φ_l = π·v_l`, so the lattice nodes
@@ -502,6 +505,15 @@ pub struct FieldFit {
     model_error_ratio: f64,
     /// Field centre `(x₀, y₀)` (image frame) and half-size `s` of the normalised coordinates.
     frame: (f64, f64, f64),
+    /// The field's perspective `p` per period, measured about the centre the caller gave
+    /// ([`fit_dot_field_against`]'s `tilt_centre`; `None` when not asked, or not measurable):
+    /// lattice coordinates `u = v/(1 − p·v)`, `v` linear in the image
+    /// (docs/design.md#tilt-centre).
+    pub perspective: Option<Vector2<f64>>,
+    /// The part of `perspective` that moved the planes, in `[0, 1)`: zero while it is not
+    /// significant at the level 10⁻³ (an untilted field's measured `p` is noise), near 1 on a
+    /// clear tilt.
+    pub tilt_weight: f64,
 }
 
 impl FieldFit {
@@ -632,6 +644,8 @@ struct Pixel {
     w: f64,
     /// `e^{iφ_l}`.
     z: [Complex64; 2],
+    /// Lattice coordinates `φ_l/2π`, periods (the planes' node numbering).
+    lattice: [f64; 2],
     /// Index of the nearest node (the pixel's cell) in per-node arrays, if inside the mask.
     cell: Option<usize>,
     /// Columns since the previous pixel visited in this row; 0 for the first of the row.
@@ -1143,6 +1157,7 @@ impl Iterator for FieldPixels<'_> {
                     layout,
                     w,
                     z,
+                    lattice: u,
                     cell: self.mask.index(u[0].round() as i64, u[1].round() as i64),
                     advance,
                     index,
@@ -1163,18 +1178,24 @@ pub fn fit_dot_field(
     start: [PhasePlane; 2],
     mask: &NodeMask,
 ) -> Option<FieldFit> {
-    fit_dot_field_against(image, start, mask, None)
+    fit_dot_field_against(image, start, mask, None, None)
 }
 
 /// [`fit_dot_field`], given up (`None`) on its first sweep with settled robust weights when it
 /// cannot beat `rival`: no spoiled cell, and a predicted σ ([`FieldFit::beats`]) already
 /// [`HOPELESS`] times the window's. The fits it returns are those of [`fit_dot_field`] to the
 /// last digit; where it gives up, the fit would have lost to the window anyway (or failed).
+///
+/// With `tilt_centre` (lattice coordinates of the marker centre, periods, in the numbering of
+/// `start`), the fit also measures the field's tilt about that centre and, where it is
+/// significant, moves the planes to where the tilt leaves them at the centre
+/// ([`FieldFit::perspective`], docs/design.md#tilt-centre).
 pub fn fit_dot_field_against(
     image: &GreyImage,
     start: [PhasePlane; 2],
     mask: &NodeMask,
     rival: Option<Rival>,
+    tilt_centre: Option<[f64; 2]>,
 ) -> Option<FieldFit> {
     if mask.count() < MIN_NODES {
         return None;
@@ -1234,7 +1255,12 @@ pub fn fit_dot_field_against(
         at: ((r.at.0 - offset[0]) / f, (r.at.1 - offset[1]) / f),
         ..r
     });
-    let mut fit = fit_dot_field_dispatch(&sub, start_sub, mask, Goal { white, rival })?;
+    let goal = Goal {
+        white,
+        rival,
+        tilt_centre,
+    };
+    let mut fit = fit_dot_field_dispatch(&sub, start_sub, mask, goal)?;
     fit.planes = fit.planes.map(|p| {
         let (a, b) = (p.a / f, p.b / f);
         PhasePlane {
@@ -1324,7 +1350,20 @@ fn fit_dot_field_generic(
         None if free_settled => {}
         None => return None,
     }
+    // The planes as the tilt leaves them at the centre.
+    if let Some(tilt) = &step.tilt {
+        let shift = tilt.planes_shift();
+        for (l, plane) in model.planes.iter_mut().enumerate() {
+            let d = [shift[3 * l], shift[3 * l + 1], shift[3 * l + 2]];
+            correct_plane(plane, d, field.frame);
+        }
+    }
+    let (perspective, tilt_weight) = step
+        .tilt
+        .map_or((None, 0.0), |t| (Some(t.perspective), t.weight()));
     Some(FieldFit {
+        perspective,
+        tilt_weight,
         planes: model.planes,
         amplitudes: [model.linear[3].abs(), model.linear[6].abs()],
         residual_std: step.residual_std,
@@ -1345,6 +1384,9 @@ fn fit_dot_field_generic(
 struct Goal {
     white: Option<f64>,
     rival: Option<Rival>,
+    /// Lattice coordinates of the marker centre, periods (the planes' numbering), when the fit
+    /// is to measure the field's tilt about it ([`Tilt`]).
+    tilt_centre: Option<[f64; 2]>,
 }
 
 impl Goal {
@@ -1434,7 +1476,6 @@ fn converge(
     goal: &Goal,
     run: &mut Run,
 ) -> Result<Step, Stall> {
-    let (x0, y0, s) = field.frame;
     let mut previous_largest = f64::INFINITY;
     // The previous iteration did not contract (see below).
     let mut slow_before = false;
@@ -1444,8 +1485,7 @@ fn converge(
         let freeze = run.frozen_at.is_none()
             && iteration > ROBUST_ITERATIONS
             && previous_largest <= SETTLED_STEP;
-        let mut step =
-            iterate(image, field, mask, model, freeze, goal.white).ok_or(Stall::Failed)?;
+        let mut step = iterate(image, field, mask, model, freeze, goal).ok_or(Stall::Failed)?;
         let mut largest = 0.0f64;
         let mut moved = [0.0; 2];
         for (l, p) in model.planes.iter_mut().enumerate() {
@@ -1454,9 +1494,7 @@ fn converge(
                 step.delta[3 * l + 1],
                 step.delta[3 * l + 2],
             ];
-            p.a += d[0] / s;
-            p.b += d[1] / s;
-            p.c += d[2] - d[0] * x0 / s - d[1] * y0 / s;
+            correct_plane(p, d, field.frame);
             moved[l] = d[0].abs() + d[1].abs() + d[2].abs();
             largest = largest.max(moved[l]);
         }
@@ -1522,10 +1560,19 @@ fn converge(
     Err(Stall::Failed)
 }
 
-/// Level of the two point-symmetry tests of [`symmetric_shift`]: 10⁻³. `−2·ln 10⁻³` is the
-/// upper quantile of χ² with two degrees of freedom; [`SYMMETRY_TEST_Z`] the standard normal
-/// one, for other degrees of freedom.
-const SYMMETRY_TEST_LIMIT: f64 = 13.815_510_557_964_274;
+/// Adds the correction `δφ = α·X + β·Y + γ` (`d = (α, β, γ)`, in the normalised coordinates
+/// of `frame` = `(x₀, y₀, s)`) to `plane` (image frame).
+fn correct_plane(plane: &mut PhasePlane, d: [f64; 3], (x0, y0, s): (f64, f64, f64)) {
+    plane.a += d[0] / s;
+    plane.b += d[1] / s;
+    plane.c += d[2] - d[0] * x0 / s - d[1] * y0 / s;
+}
+
+/// Level of the fit's tests (the two point-symmetry tests of [`symmetric_shift`], the tilt's
+/// significance of [`Tilt::weight`]): 10⁻³. `−2·ln 10⁻³` is the upper quantile of χ² with two
+/// degrees of freedom; [`SYMMETRY_TEST_Z`] the standard normal one, for other degrees of
+/// freedom.
+const TEST_LIMIT_TWO_DOF: f64 = 13.815_510_557_964_274;
 /// Standard normal quantile at `1 − 10⁻³`.
 const SYMMETRY_TEST_Z: f64 = 3.090_232_306_167_813;
 
@@ -1570,7 +1617,7 @@ fn symmetric_shift(model: &Model, step: &Step) -> Option<[f64; 2]> {
     let shift = (fundamentals + harmonics).try_inverse()? * rhs;
     let harmonics_inverse = harmonics.try_inverse()?;
     let precision = fundamentals * harmonics_inverse * fundamentals + fundamentals;
-    let moves = shift.dot(&(precision * shift)) / variance > SYMMETRY_TEST_LIMIT;
+    let moves = shift.dot(&(precision * shift)) / variance > TEST_LIMIT_TWO_DOF;
     let dof = model.harmonics.len().saturating_sub(2);
     let misfit = (imaginary - rhs.dot(&(harmonics_inverse * rhs))) / variance;
     let disagree = dof > 0 && misfit > chi_square_quantile(dof as f64, SYMMETRY_TEST_Z);
@@ -1681,6 +1728,177 @@ fn first_model(
     })
 }
 
+/// One sweep's normal equations: the plain unknowns, or with the tilt's four columns as well
+/// when the fit measures the field's tilt ([`Tilt`]). The tilted system's first [`UNKNOWNS`]
+/// rows and columns are the plain system's, entry for entry (each entry is its own dot
+/// product of the same columns), so measuring the tilt leaves the fit's steps as they are.
+// One per sweep, on the stack: the variants' sizes differ by design.
+#[allow(clippy::large_enum_variant)]
+enum Equations {
+    Plain(NormalEquations<UNKNOWNS>),
+    Tilted(NormalEquations<TILTED>),
+}
+
+impl Equations {
+    /// Adds an observation; `tilt_columns` gives the tilt's four basis functions, asked for
+    /// only when measured.
+    #[inline(always)]
+    fn add(
+        &mut self,
+        basis: &[f64; UNKNOWNS],
+        data: f64,
+        weight: f64,
+        tilt_columns: impl FnOnce() -> [f64; 4],
+    ) {
+        match self {
+            Equations::Plain(e) => e.add(basis, data, weight),
+            Equations::Tilted(e) => {
+                let extra = tilt_columns();
+                let row: [f64; TILTED] = std::array::from_fn(|i| match i {
+                    i if i < UNKNOWNS => basis[i],
+                    i => extra[i - UNKNOWNS],
+                });
+                e.add(&row, data, weight);
+            }
+        }
+    }
+
+    /// The plain normal matrix and right-hand side, and the tilted ones when measured.
+    #[allow(clippy::type_complexity)]
+    fn finish(
+        self,
+    ) -> (
+        SMatrix<f64, UNKNOWNS, UNKNOWNS>,
+        SVector<f64, UNKNOWNS>,
+        Option<(SMatrix<f64, TILTED, TILTED>, SVector<f64, TILTED>)>,
+    ) {
+        match self {
+            Equations::Plain(e) => {
+                let (n, r) = e.finish();
+                (n, r, None)
+            }
+            Equations::Tilted(e) => {
+                let (n, r) = e.finish();
+                let plain = n.fixed_view::<UNKNOWNS, UNKNOWNS>(0, 0).into_owned();
+                (
+                    plain,
+                    r.fixed_rows::<UNKNOWNS>(0).into_owned(),
+                    Some((n, r)),
+                )
+            }
+        }
+    }
+}
+
+/// The tilt of a field about its centre (docs/design.md#tilt-centre), measured by one
+/// Gauss–Newton step of a homography's phase: lattice coordinates `u = v/(1 − p·v)`, `v`
+/// linear in the image (the planes, about the centre) and `p` the perspective per period, as
+/// [`crate::hpcode`]'s dot grid has it. Linear planes fitted to a tilted field take in the
+/// mean of its curvature and miss its centre by about `Σ·p` periods (`Σ` the field's second
+/// moments, `h²/3` per axis on a square field); here `p` is estimated with every other
+/// unknown, and the planes move by what `p` moves them.
+#[derive(Clone, Copy, Debug)]
+struct Tilt {
+    /// Estimated perspective `p`, per period.
+    perspective: Vector2<f64>,
+    /// Its information (the Schur complement of the other unknowns, weighted squares per unit
+    /// of `p` squared).
+    information: Matrix2<f64>,
+    /// Its covariance (residual scale, model error included).
+    covariance: Matrix2<f64>,
+    /// How the other unknowns (the linear ones, then the plane corrections) change per unit
+    /// of `p`, each re-solved with it.
+    response: SMatrix<f64, UNKNOWNS, 2>,
+}
+
+impl Tilt {
+    /// The tilt from a sweep's tilted normal equations `normal·x = rhs`
+    /// (`harmonic_offsets`: the model has free harmonics, whose phase offsets are unknowns
+    /// too; tied ones have none of their own), `scale` the variance of a unit-weight
+    /// observation times `Σw²/Σw`. The other unknowns are eliminated (Schur complement), so
+    /// that `p` is estimated with them.
+    fn estimate(
+        normal: &SMatrix<f64, TILTED, TILTED>,
+        rhs: &SVector<f64, TILTED>,
+        harmonic_offsets: bool,
+        scale: f64,
+    ) -> Option<Tilt> {
+        let tilt = [UNKNOWNS, UNKNOWNS + 1];
+        let offsets = if harmonic_offsets {
+            UNKNOWNS + 2..TILTED
+        } else {
+            0..0
+        };
+        let others: Vec<usize> = (0..UNKNOWNS).chain(offsets).collect();
+        let m = others.len();
+        let own = Matrix2::from_fn(|i, j| normal[(tilt[i], tilt[j])]);
+        let cross = DMatrix::from_fn(m, 2, |i, j| normal[(others[i], tilt[j])]);
+        let rest = DMatrix::from_fn(m, m, |i, j| normal[(others[i], others[j])]);
+        let response = rest.cholesky()?.solve(&cross);
+        let reduced = own - Matrix2::from_iterator((cross.transpose() * &response).iter().copied());
+        let schur_inverse = reduced.try_inverse()?;
+        let rhs_rest = DVector::from_fn(m, |i, _| rhs[others[i]]);
+        let pulled = response.transpose() * rhs_rest;
+        let perspective =
+            schur_inverse * Vector2::new(rhs[tilt[0]] - pulled[0], rhs[tilt[1]] - pulled[1]);
+        perspective.iter().all(|v| v.is_finite()).then(|| Tilt {
+            perspective,
+            information: reduced,
+            covariance: schur_inverse * scale,
+            response: SMatrix::from_fn(|i, j| response[(i, j)]),
+        })
+    }
+
+    /// The perspective the planes take: `p` times [`Tilt::weight`].
+    fn taken(&self) -> Vector2<f64> {
+        self.perspective * self.weight()
+    }
+
+    /// The plane corrections `(α₁, β₁, γ₁, α₂, β₂, γ₂)` that taking [`Tilt::taken`] makes (the
+    /// other unknowns re-solved with it): to first order, the fixed point of the fit with
+    /// this tilt in its phase.
+    fn planes_shift(&self) -> Vector6<f64> {
+        -(self.response.fixed_rows::<6>(LINEAR) * self.taken())
+    }
+
+    /// The weighted squares of the residual that taking [`Tilt::taken`] removes (the whole
+    /// estimate would remove `pᵀ·I·p`, `I` its information).
+    fn explained_squares(&self) -> f64 {
+        let (p, t) = (self.perspective, self.taken());
+        (2.0 * t.dot(&(self.information * p)) - t.dot(&(self.information * t))).max(0.0)
+    }
+
+    /// Covariance of the plane corrections added by taking the tilt, per unit variance of a
+    /// weighted observation: `w²·R·I⁻¹·Rᵀ` (`R` the response, `I` the information, `w` the
+    /// weight).
+    fn planes_covariance(&self) -> Matrix6<f64> {
+        let weight = self.weight();
+        let planes = self.response.fixed_rows::<6>(LINEAR);
+        match self.information.try_inverse() {
+            Some(inverse) => planes * inverse * planes.transpose() * (weight * weight),
+            None => Matrix6::zeros(),
+        }
+    }
+
+    /// How much of the measured perspective the planes take, in `[0, 1)`: the soft threshold
+    /// `1 − χ²₀/χ²` of its Mahalanobis square `χ² = pᵀ·C⁻¹·p` above [`TEST_LIMIT_TWO_DOF`]
+    /// `χ²₀`, zero below. On an untilted field `p` is noise, which must not move the planes;
+    /// on a tilted one `χ²` runs into the thousands and nearly all of `p` is taken.
+    /// Continuous, so the planes do not jump where a tilt becomes significant.
+    fn weight(&self) -> f64 {
+        let p = self.perspective;
+        let chi2 = self
+            .covariance
+            .try_inverse()
+            .map_or(0.0, |inverse| p.dot(&(inverse * p)));
+        if chi2.is_finite() && chi2 > TEST_LIMIT_TWO_DOF {
+            1.0 - TEST_LIMIT_TWO_DOF / chi2
+        } else {
+            0.0
+        }
+    }
+}
+
 /// Output of one iteration.
 struct Step {
     linear: SVector<f64, LINEAR>,
@@ -1705,6 +1923,8 @@ struct Step {
     /// Variance of the real and of the imaginary part of a demodulated amplitude under the
     /// white noise, `2σ²·Σw²/(Σw)²`, intensity units².
     amplitude_variance: f64,
+    /// The field's tilt as this sweep measured it, when asked ([`Goal::tilt_centre`]).
+    tilt: Option<Tilt>,
 }
 
 /// One sweep over the field: residuals of the current model, their robust weights, the
@@ -1719,14 +1939,20 @@ fn iterate(
     mask: &NodeMask,
     model: &Model,
     freeze: bool,
-    white: Option<f64>,
+    goal: &Goal,
 ) -> Option<Step> {
     let mut frozen = if freeze {
         vec![0.0f32; field.rows.len() * field.cols.len()]
     } else {
         Vec::new()
     };
-    let mut equations = NormalEquations::<UNKNOWNS>::new();
+    // The tilt is probed on the fixed problem of frozen weights, where the fit converges.
+    let tilt_centre = goal.tilt_centre.filter(|_| !model.frozen.is_empty());
+    let mut equations = match tilt_centre {
+        Some(_) => Equations::Tilted(NormalEquations::new()),
+        None => Equations::Plain(NormalEquations::new()),
+    };
+    let mut slopes = [0.0f64; 2];
     let (mut sum_w, mut sum_w2, mut sum_layout, mut pixels) = (0.0, 0.0, 0.0, 0usize);
     let mut residuals = Vec::new();
     let mut cells = vec![[0.0f64; 2]; mask.len()];
@@ -1782,18 +2008,32 @@ fn iterate(
             let amplitude = m[3 + 3 * l] + m[4 + 3 * l] * p.xn + m[5 + 3 * l] * p.yn;
             let fundamental = -amplitude * sn;
             let d = fundamental + gain * h_slope[l];
+            slopes[l] = d;
             basis[LINEAR + 3 * l] = d * p.xn;
             basis[LINEAR + 3 * l + 1] = d * p.yn;
             basis[LINEAR + 3 * l + 2] = if model.tied { d } else { fundamental };
         }
         basis[9] = p.xn * h;
         basis[10] = p.yn * h;
-        equations.add(&basis, data, w);
+        equations.add(&basis, data, w, || {
+            let c = tilt_centre.unwrap_or_default();
+            let v = [p.lattice[0] - c[0], p.lattice[1] - c[1]];
+            // ∂g/∂p_k = Σ_l ∂g/∂φ_l · 2π·v_l·v_k (u = v/(1 − p·v), φ_l = 2π·u_l); then the
+            // harmonics' own phase shift per plane, which free harmonics take apart from the
+            // offsets (their amplitudes hold the mean of a tilt's curvature).
+            let along = TAU * (slopes[0] * v[0] + slopes[1] * v[1]);
+            [
+                along * v[0],
+                along * v[1],
+                gain * h_slope[0],
+                gain * h_slope[1],
+            ]
+        });
     }
     if sum_w <= 0.0 || sum_layout <= 0.0 {
         return None;
     }
-    let (normal, rhs) = equations.finish();
+    let (normal, rhs, tilted) = equations.finish();
     let inverse = normal.cholesky()?.inverse();
     let x = inverse * rhs;
     let residual_std = robust_sigma(&mut residuals);
@@ -1803,14 +2043,29 @@ fn iterate(
     // edges, aliased harmonics, sharp dots' detail beyond the modelled orders), which does not
     // scatter the result from frame to frame but may bias it. σ² is the white noise alone: the
     // model-free estimate `white` when smaller, at least the engine's floor.
-    let residual_variance = (sum_wr2 / sum_w).min(residual_std * residual_std);
+    let misfit_variance = (sum_wr2 / sum_w).min(residual_std * residual_std);
+    // The tilt's significance is judged on the residual's scale, model error included: a
+    // static misfit must not pass for a tilt.
+    let tilt_scale = misfit_variance * sum_w2 / sum_w;
+    let free_harmonics = !model.tied && !model.harmonics.is_empty();
+    let tilt = tilted.and_then(|(n, r)| Tilt::estimate(&n, &r, free_harmonics, tilt_scale));
+    // The part of the residual that the tilt taken explains is no model error once the
+    // planes take the tilt (the weighted squares it removes, a fraction of all).
+    let explained = tilt.map_or(0.0, |t| t.explained_squares() / sum_wr2);
+    let residual_variance = misfit_variance * (1.0 - explained).clamp(0.0, 1.0);
     let noise_variance = residual_variance
-        .min(white.unwrap_or(f64::INFINITY))
+        .min(goal.white.unwrap_or(f64::INFINITY))
         .max(MIN_NOISE_STD * MIN_NOISE_STD);
-    let covariance =
-        inverse.fixed_view::<6, 6>(LINEAR, LINEAR).into_owned() * (noise_variance * sum_w2 / sum_w);
+    let unit = noise_variance * sum_w2 / sum_w;
+    let mut covariance = inverse.fixed_view::<6, 6>(LINEAR, LINEAR).into_owned() * unit;
+    if let Some(t) = &tilt {
+        // The planes will move with the tilt taken ([`Tilt::planes_shift`]), and take its
+        // noise with them.
+        covariance += t.planes_covariance() * unit;
+    }
     let model_error_ratio = (residual_variance / noise_variance).max(1.0).sqrt();
     Some(Step {
+        tilt,
         model_error_ratio,
         linear: x.fixed_rows::<LINEAR>(0).into_owned(),
         delta: x.fixed_rows::<6>(LINEAR).into_owned(),
@@ -1941,6 +2196,19 @@ mod tests {
         }
     }
 
+    /// `image` with uniform noise over `range` (standard deviation `range/√12`; a linear
+    /// congruential sequence from `seed`).
+    fn with_noise(mut image: GreyImage, range: f32, seed: u64) -> GreyImage {
+        let mut state = seed;
+        for v in image.pixels_mut() {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            *v += range * ((state >> 40) as f32 / (1u64 << 24) as f32 - 0.5);
+        }
+        image
+    }
+
     /// Sharp-ish dots: a raised power of the product of cosines (many harmonics).
     fn sharp(p1: f64, p2: f64) -> f64 {
         let v = (0.5 + 0.5 * p1.cos()) * (0.5 + 0.5 * p2.cos());
@@ -1984,14 +2252,7 @@ mod tests {
         // Sharp dots with 1 % noise (uniform, from a linear congruential sequence): no cell
         // stands out of the others, none is spoiled.
         let truth = planes(0.3, 9.3, [0.4, -1.1]);
-        let mut image = grid(160, &truth, sharp);
-        let mut state = 12345u64;
-        for v in image.pixels_mut() {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            *v += 0.0346 * ((state >> 40) as f32 / (1u64 << 24) as f32 - 0.5);
-        }
+        let image = with_noise(grid(160, &truth, sharp), 0.0346, 12345);
         let mask = dots(6, &[]);
         let mut start = truth;
         start[0].c += 0.05;
@@ -2005,11 +2266,14 @@ mod tests {
         let own = rival(0.0).field_std(&plain.covariance, plain.frame, plain.model_error_ratio);
         assert!(own > 0.0);
         // A window 100 times better: the fit stops once its weights settle.
-        assert!(fit_dot_field_against(&image, start, &mask, Some(rival(own / 100.0))).is_none());
+        assert!(
+            fit_dot_field_against(&image, start, &mask, Some(rival(own / 100.0)), None).is_none()
+        );
         // A window it beats, or loses to by less than `HOPELESS`: the fit of `fit_dot_field`.
         // (With free harmonics, on the first sweep on settled weights, σ is twice `own` here.)
         for std in [10.0 * own, own / 2.0, own / 4.0] {
-            let against = fit_dot_field_against(&image, start, &mask, Some(rival(std))).unwrap();
+            let against =
+                fit_dot_field_against(&image, start, &mask, Some(rival(std)), None).unwrap();
             assert_eq!(against.planes, plain.planes);
             assert_eq!(against.iterations, plain.iterations);
         }
@@ -2044,6 +2308,68 @@ mod tests {
         let mask = dots(4, &[]);
         let wrong = planes(0.1, 13.0, [0.0, 0.0]);
         assert!(fit_dot_field(&image, wrong, &mask).is_none());
+    }
+
+    /// Where `planes` put the lattice node `(0, 0)`, image frame.
+    fn centre_of(planes: &[PhasePlane; 2]) -> Vector2<f64> {
+        let m = Matrix2::new(planes[0].a, planes[0].b, planes[1].a, planes[1].b);
+        m.try_inverse().unwrap() * Vector2::new(-planes[0].c, -planes[1].c)
+    }
+
+    #[test]
+    fn a_tilted_field_s_centre_is_where_its_tilt_leaves_it() {
+        // Lattice coordinates u = v/(1 − p·v), v linear in the image (the `truth` planes):
+        // node (0, 0) is where the truth planes vanish; linear planes fitted to the field miss
+        // it by about Σ·p (0.03 period here). Sharp dots (free harmonics) and dots with no
+        // harmonics at all.
+        let truth = planes(0.3, 9.3, [0.4, -1.1]);
+        let p = Vector2::new(0.0015, -0.001);
+        let smooth = |p1: f64, p2: f64| 0.5 + 0.2 * (p1.cos() + p2.cos());
+        for dot in [sharp as fn(f64, f64) -> f64, smooth] {
+            let n = 160;
+            let (cx, cy) = ((n / 2) as f64, (n / 2) as f64);
+            let mut px = Vec::with_capacity(n * n);
+            for r in 0..n {
+                for c in 0..n {
+                    let (x, y) = (c as f64 - cx, r as f64 - cy);
+                    let v = Vector2::new(truth[0].at(x, y), truth[1].at(x, y)) / TAU;
+                    let u = v / (1.0 - p.dot(&v));
+                    px.push(dot(TAU * u.x, TAU * u.y) as f32);
+                }
+            }
+            let image = GreyImage::new(n, n, px).unwrap();
+            let mask = dots(6, &[]);
+            let centre = centre_of(&truth);
+            let linear = fit_dot_field_against(&image, truth, &mask, None, None).unwrap();
+            let tilted =
+                fit_dot_field_against(&image, truth, &mask, None, Some([0.0, 0.0])).unwrap();
+            let missed = (centre_of(&linear.planes) - centre).norm();
+            let left = (centre_of(&tilted.planes) - centre).norm();
+            assert!(linear.perspective.is_none());
+            let measured = tilted.perspective.unwrap();
+            assert!(
+                (measured - p).norm() < 0.15 * p.norm(),
+                "{measured:?} for {p:?}"
+            );
+            assert!(tilted.tilt_weight > 0.99, "{}", tilted.tilt_weight);
+            assert!(missed > 0.1, "the linear planes' bias: {missed} px");
+            assert!(left < 0.1 * missed, "{left} px left of {missed}");
+        }
+    }
+
+    #[test]
+    fn an_untilted_field_s_planes_are_not_moved_by_the_tilt_probe() {
+        // Sharp dots with 2 % noise: the measured perspective is noise, which moves nothing.
+        let truth = planes(0.3, 9.3, [0.4, -1.1]);
+        let image = with_noise(grid(160, &truth, sharp), 0.0693, 777);
+        let mask = dots(6, &[]);
+        let plain = fit_dot_field_against(&image, truth, &mask, None, None).unwrap();
+        let probed = fit_dot_field_against(&image, truth, &mask, None, Some([0.0, 0.0])).unwrap();
+        assert!(probed.perspective.is_some());
+        assert_eq!(probed.tilt_weight, 0.0);
+        for (a, b) in plain.planes.iter().zip(&probed.planes) {
+            assert_eq!((a.a, a.b, a.c), (b.a, b.b, b.c));
+        }
     }
 
     #[test]

@@ -926,7 +926,10 @@ impl StampDetector {
                 ])
             },
         );
-        let fit = fit_dot_field_against(image, planes.map(|p| moved(&p, 1.0)), &mask, Some(rival))?;
+        // The stamp's origin, the pose's, is node o/2: the fit measures the tilt about it.
+        let centre = [o[0] as f64 / 2.0, o[1] as f64 / 2.0];
+        let start = planes.map(|p| moved(&p, 1.0));
+        let fit = fit_dot_field_against(image, start, &mask, Some(rival), Some(centre))?;
         Some((fit.planes.map(|p| moved(&p, -1.0)), fit))
     }
 
