@@ -7,8 +7,9 @@
 #
 #   bash scripts/bench_end_to_end.sh [FRAMES]     (default 30 frames per case)
 #
-# Needs the release CLI (`cargo build --release -p vernier-cli`), ImageMagick's `convert`
-# (for the PGM files) and `../shared/data` (or VERNIER_DATA_DIR). Not run in CI: it times.
+# Needs the release CLI (`cargo build --release -p vernier-cli`), the test tools' Pillow (for
+# the PGM files: `bash scripts/setup_test_tools.sh`) and `../shared/data` (or VERNIER_DATA_DIR).
+# Not run in CI: it times.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 frames=${1:-30}
@@ -17,7 +18,9 @@ vernier=target/release/vernier
 for need in "$vernier" "$data/hpcode/Image100.png" "$data/stamp/stampPatternImage_15um.jpg"; do
     [ -e "$need" ] || { echo "bench_end_to_end: missing $need" >&2; exit 1; }
 done
-command -v convert >/dev/null || { echo "bench_end_to_end: needs ImageMagick's convert" >&2; exit 1; }
+python=.venv/bin/python
+"$python" -c "import PIL" 2>/dev/null ||
+    { echo "bench_end_to_end: needs Pillow: bash scripts/setup_test_tools.sh" >&2; exit 1; }
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 
@@ -32,11 +35,27 @@ EOF
     --size 512x512 --noise 0.01 "$work/periodic.png"
 "$vernier" render --pattern "$work/megarena.json" --pose=-51234.5,-43210.9,0.4 --pixel-size 1 \
     --size 1024x1024 --noise 0.01 "$work/megarena.png"
-convert "$data/hpcode/Image100.png" -depth 8 "$work/hp_full.pgm"
-convert "$data/hpcode/Image100.png" -crop 1024x1024+468+454 +repage -depth 8 "$work/hp_crop.pgm"
-convert "$data/stamp/stampPatternImage_15um.jpg" -colorspace Gray -depth 8 "$work/stamp.pgm"
-convert "$work/periodic.png" -depth 8 "$work/periodic.pgm"
-convert "$work/megarena.png" -depth 8 "$work/megarena.pgm"
+# SOURCE DEST [LEFT TOP SIZE]: an 8-bit grey PGM of SOURCE (a SIZE² crop at LEFT, TOP).
+to_pgm() {
+    "$python" - "$@" <<'PY'
+import sys
+from PIL import Image
+source, dest, *crop = sys.argv[1:]
+image = Image.open(source)
+if image.mode in ("I", "I;16", "I;16B"):
+    image = image.point(lambda v: v / 257)
+image = image.convert("L")
+if crop:
+    left, top, size = map(int, crop)
+    image = image.crop((left, top, left + size, top + size))
+image.save(dest)
+PY
+}
+to_pgm "$data/hpcode/Image100.png" "$work/hp_full.pgm"
+to_pgm "$data/hpcode/Image100.png" "$work/hp_crop.pgm" 468 454 1024
+to_pgm "$data/stamp/stampPatternImage_15um.jpg" "$work/stamp.pgm"
+to_pgm "$work/periodic.png" "$work/periodic.pgm"
+to_pgm "$work/megarena.png" "$work/megarena.pgm"
 
 # One case: NAME, FILE, ORIGINAL (ms, from issue 17's side-by-side run), detector flags.
 run_case() {
