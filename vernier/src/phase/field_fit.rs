@@ -2051,7 +2051,10 @@ fn iterate(
     let tilt = tilted.and_then(|(n, r)| Tilt::estimate(&n, &r, free_harmonics, tilt_scale));
     // The part of the residual that the tilt taken explains is no model error once the
     // planes take the tilt (the weighted squares it removes, a fraction of all).
-    let explained = tilt.map_or(0.0, |t| t.explained_squares() / sum_wr2);
+    let explained = match tilt {
+        Some(t) if sum_wr2 > 0.0 => t.explained_squares() / sum_wr2,
+        _ => 0.0,
+    };
     let residual_variance = misfit_variance * (1.0 - explained).clamp(0.0, 1.0);
     let noise_variance = residual_variance
         .min(goal.white.unwrap_or(f64::INFINITY))
