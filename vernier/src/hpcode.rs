@@ -680,6 +680,7 @@ impl Measure<'_> {
         };
         let (grid, field) = match refined {
             Some((refined, fit)) => {
+                let tilt = fit.perspective.unwrap_or_default();
                 log::debug!(
                     "marker {}: field fit over {} px, {} harmonics, {} iterations, {:.1} % inliers, \
                          residual σ {:.2e}, orientation σ {:.2e} rad, perspective ({:.2e}, \
@@ -691,8 +692,8 @@ impl Measure<'_> {
                     100.0 * fit.inlier_fraction,
                     fit.residual_std,
                     fit.mean_direction_std(),
-                    fit.perspective.unwrap_or_default().x,
-                    fit.perspective.unwrap_or_default().y,
+                    tilt.x,
+                    tilt.y,
                     fit.tilt_weight
                 );
                 (refined, Some(fit))

@@ -1360,7 +1360,7 @@ fn fit_dot_field_generic(
     }
     let (perspective, tilt_weight) = step
         .tilt
-        .map_or((None, 0.0), |t| (Some(t.perspective), t.weight()));
+        .map_or((None, 0.0), |t| (Some(t.perspective), t.weight));
     Some(FieldFit {
         perspective,
         tilt_weight,
@@ -1569,7 +1569,7 @@ fn correct_plane(plane: &mut PhasePlane, d: [f64; 3], (x0, y0, s): (f64, f64, f6
 }
 
 /// Level of the fit's tests (the two point-symmetry tests of [`symmetric_shift`], the tilt's
-/// significance of [`Tilt::weight`]): 10⁻³. `−2·ln 10⁻³` is the upper quantile of χ² with two
+/// significance, [`Tilt::weight`]): 10⁻³. `−2·ln 10⁻³` is the upper quantile of χ² with two
 /// degrees of freedom; [`SYMMETRY_TEST_Z`] the standard normal one, for other degrees of
 /// freedom.
 const TEST_LIMIT_TWO_DOF: f64 = 13.815_510_557_964_274;
@@ -1804,8 +1804,13 @@ struct Tilt {
     /// Its information (the Schur complement of the other unknowns, weighted squares per unit
     /// of `p` squared).
     information: Matrix2<f64>,
-    /// Its covariance (residual scale, model error included).
-    covariance: Matrix2<f64>,
+    /// How much of `p` the planes take, in `[0, 1)`: the soft threshold `1 − χ²₀/χ²` of its
+    /// Mahalanobis square `χ² = pᵀ·I·p/s` (`s` the residual's scale, model error included)
+    /// above [`TEST_LIMIT_TWO_DOF`] `χ²₀`, zero below. On an untilted field `p` is noise,
+    /// which must not move the planes; on a tilted one `χ²` runs into the thousands and nearly
+    /// all of `p` is taken. Continuous, so the planes do not jump where a tilt becomes
+    /// significant.
+    weight: f64,
     /// How the other unknowns (the linear ones, then the plane corrections) change per unit
     /// of `p`, each re-solved with it.
     response: SMatrix<f64, UNKNOWNS, 2>,
@@ -1836,22 +1841,27 @@ impl Tilt {
         let rest = DMatrix::from_fn(m, m, |i, j| normal[(others[i], others[j])]);
         let response = rest.cholesky()?.solve(&cross);
         let reduced = own - Matrix2::from_iterator((cross.transpose() * &response).iter().copied());
-        let schur_inverse = reduced.try_inverse()?;
         let rhs_rest = DVector::from_fn(m, |i, _| rhs[others[i]]);
         let pulled = response.transpose() * rhs_rest;
-        let perspective =
-            schur_inverse * Vector2::new(rhs[tilt[0]] - pulled[0], rhs[tilt[1]] - pulled[1]);
+        let perspective = reduced.try_inverse()?
+            * Vector2::new(rhs[tilt[0]] - pulled[0], rhs[tilt[1]] - pulled[1]);
+        let chi2 = perspective.dot(&(reduced * perspective)) / scale;
+        let weight = if chi2.is_finite() && chi2 > TEST_LIMIT_TWO_DOF {
+            1.0 - TEST_LIMIT_TWO_DOF / chi2
+        } else {
+            0.0
+        };
         perspective.iter().all(|v| v.is_finite()).then(|| Tilt {
             perspective,
             information: reduced,
-            covariance: schur_inverse * scale,
+            weight,
             response: SMatrix::from_fn(|i, j| response[(i, j)]),
         })
     }
 
     /// The perspective the planes take: `p` times [`Tilt::weight`].
     fn taken(&self) -> Vector2<f64> {
-        self.perspective * self.weight()
+        self.perspective * self.weight
     }
 
     /// The plane corrections `(α₁, β₁, γ₁, α₂, β₂, γ₂)` that taking [`Tilt::taken`] makes (the
@@ -1872,29 +1882,11 @@ impl Tilt {
     /// weighted observation: `w²·R·I⁻¹·Rᵀ` (`R` the response, `I` the information, `w` the
     /// weight).
     fn planes_covariance(&self) -> Matrix6<f64> {
-        let weight = self.weight();
+        let weight = self.weight;
         let planes = self.response.fixed_rows::<6>(LINEAR);
         match self.information.try_inverse() {
             Some(inverse) => planes * inverse * planes.transpose() * (weight * weight),
             None => Matrix6::zeros(),
-        }
-    }
-
-    /// How much of the measured perspective the planes take, in `[0, 1)`: the soft threshold
-    /// `1 − χ²₀/χ²` of its Mahalanobis square `χ² = pᵀ·C⁻¹·p` above [`TEST_LIMIT_TWO_DOF`]
-    /// `χ²₀`, zero below. On an untilted field `p` is noise, which must not move the planes;
-    /// on a tilted one `χ²` runs into the thousands and nearly all of `p` is taken.
-    /// Continuous, so the planes do not jump where a tilt becomes significant.
-    fn weight(&self) -> f64 {
-        let p = self.perspective;
-        let chi2 = self
-            .covariance
-            .try_inverse()
-            .map_or(0.0, |inverse| p.dot(&(inverse * p)));
-        if chi2.is_finite() && chi2 > TEST_LIMIT_TWO_DOF {
-            1.0 - TEST_LIMIT_TWO_DOF / chi2
-        } else {
-            0.0
         }
     }
 }
