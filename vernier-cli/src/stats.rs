@@ -6,6 +6,13 @@
 //! deviation `σ·√6` and removes the motion (a constant velocity exactly, a slow acceleration
 //! nearly), and the median makes one bad frame harmless. The plain standard deviation, which
 //! includes the motion, is printed beside it.
+//!
+//! Where the motion is not smooth at the frame rate (vibration, a part stepping unevenly), the
+//! second differences hold it too. `--against OTHER` then compares the table with another
+//! estimate of the same frames (another estimator, other settings, the original's results):
+//! the difference of the two series holds no motion, only the two estimators' own noise
+//! combined, an upper bound of each one's; the correlation of their second differences says
+//! how much of them is motion both see (1) or noise of their own (0).
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -15,6 +22,7 @@ use clap::Parser;
 
 use crate::plot::{mean_std, series};
 use crate::pose_table::{read_table_file, PoseRow};
+use vernier::phase::wrap_angle;
 
 /// Arguments of `vernier stats`.
 #[derive(Parser)]
@@ -25,6 +33,11 @@ pub struct StatsArgs {
     /// Default: every pair of the markers in the table (at most 8 markers).
     #[arg(long = "pair", value_parser = parse_pair)]
     pairs: Vec<(u64, u64)>,
+    /// Another pose table of the same frames (CSV or JSON Lines, rows matched by frame number
+    /// and marker ID): prints the noise of each marker's difference from it (the motion
+    /// cancels) and the correlation of the two series' second differences.
+    #[arg(long, value_name = "OTHER")]
+    against: Option<PathBuf>,
 }
 
 /// Most markers whose pairs are all listed by default.
@@ -45,16 +58,18 @@ fn parse_pair(text: &str) -> Result<(u64, u64), String> {
 /// Robust noise of `v` from its second differences (see the module docs); `None` below 3
 /// samples.
 pub fn second_difference_noise(v: &[f64]) -> Option<f64> {
-    let mut d: Vec<f64> = v
-        .windows(3)
-        .map(|w| (w[2] - 2.0 * w[1] + w[0]).abs())
-        .collect();
+    let mut d: Vec<f64> = second_differences(v).map(f64::abs).collect();
     if d.is_empty() {
         return None;
     }
     let mid = d.len() / 2;
     let (_, median, _) = d.select_nth_unstable_by(mid, f64::total_cmp);
     Some(1.4826 * *median / 6f64.sqrt())
+}
+
+/// `v[n+1] − 2v[n] + v[n−1]` for every inner sample.
+fn second_differences(v: &[f64]) -> impl Iterator<Item = f64> + '_ {
+    v.windows(3).map(|w| w[2] - 2.0 * w[1] + w[0])
 }
 
 /// One row of the table: a name and its samples of x, y (pattern units) and alpha (rad).
@@ -66,6 +81,21 @@ struct Samples {
 }
 
 impl Samples {
+    fn new(name: String) -> Self {
+        Samples {
+            name,
+            x: Vec::new(),
+            y: Vec::new(),
+            alpha: Vec::new(),
+        }
+    }
+
+    fn push(&mut self, x: f64, y: f64, alpha: f64) {
+        self.x.push(x);
+        self.y.push(y);
+        self.alpha.push(alpha);
+    }
+
     fn print(&self) {
         let cell = |v: &[f64], scale: f64| {
             let scaled: Vec<f64> = v.iter().map(|x| x * scale).collect();
@@ -84,37 +114,113 @@ impl Samples {
     }
 }
 
+/// The poses `(x, y, alpha)` of `a` and `b` in the frames where both have one, in `a`'s order.
+fn matched<'r>(
+    a: &'r [&PoseRow],
+    b: &'r [&PoseRow],
+) -> impl Iterator<Item = ([f64; 3], [f64; 3])> + 'r {
+    let by_frame: BTreeMap<u64, &PoseRow> = b.iter().map(|r| (r.frame, *r)).collect();
+    let pose = |r: &PoseRow| Some([r.x?, r.y?, r.alpha?]);
+    a.iter()
+        .filter_map(move |ra| Some((pose(ra)?, pose(by_frame.get(&ra.frame)?)?)))
+}
+
 /// Pose of marker `b` in marker `a`'s frame, per frame where both are seen: position
 /// `Rz(−α_a)·(p_b − p_a)` (pattern units), angle `α_b − α_a` wrapped to `[−π, π)`.
 fn relative(a: &[&PoseRow], b: &[&PoseRow], name: String) -> Samples {
-    let by_frame: BTreeMap<u64, &PoseRow> = b.iter().map(|r| (r.frame, *r)).collect();
-    let mut out = Samples {
-        name,
-        x: Vec::new(),
-        y: Vec::new(),
-        alpha: Vec::new(),
-    };
-    for ra in a {
-        let Some(rb) = by_frame.get(&ra.frame) else {
-            continue;
-        };
-        let (Some(xa), Some(ya), Some(aa), Some(xb), Some(yb), Some(ab)) =
-            (ra.x, ra.y, ra.alpha, rb.x, rb.y, rb.alpha)
-        else {
-            continue;
-        };
+    let mut out = Samples::new(name);
+    for ([xa, ya, aa], [xb, yb, ab]) in matched(a, b) {
         let (dx, dy) = (xb - xa, yb - ya);
         let (s, c) = aa.sin_cos();
-        out.x.push(c * dx + s * dy);
-        out.y.push(-s * dx + c * dy);
-        out.alpha.push(vernier::phase::wrap_angle(ab - aa));
+        out.push(c * dx + s * dy, -s * dx + c * dy, wrap_angle(ab - aa));
     }
     out
+}
+
+/// A marker's pose minus its pose in another table, per frame where both have one: position
+/// difference (pattern units) and angle difference wrapped to `[−π, π)`; and the two series
+/// over those frames, for their second differences' correlation.
+fn difference(ours: &[&PoseRow], other: &[&PoseRow], name: String) -> (Samples, [Samples; 2]) {
+    let mut diff = Samples::new(name);
+    let mut both = [Samples::new("this".into()), Samples::new("other".into())];
+    for ([xa, ya, aa], [xb, yb, ab]) in matched(ours, other) {
+        diff.push(xa - xb, ya - yb, wrap_angle(aa - ab));
+        both[0].push(xa, ya, aa);
+        both[1].push(xb, yb, ab);
+    }
+    (diff, both)
+}
+
+/// Pearson correlation of the second differences of `a` and `b` (same length); `None` below
+/// two second differences or when either has none of its own.
+fn second_difference_correlation(a: &[f64], b: &[f64]) -> Option<f64> {
+    let (da, db): (Vec<f64>, Vec<f64>) = (
+        second_differences(a).collect(),
+        second_differences(b).collect(),
+    );
+    if da.len() < 2 || da.len() != db.len() {
+        return None;
+    }
+    let ((ma, sa), (mb, sb)) = (mean_std(&da), mean_std(&db));
+    let n = (da.len() - 1) as f64;
+    let covariance = da
+        .iter()
+        .zip(&db)
+        .map(|(x, y)| (x - ma) * (y - mb))
+        .sum::<f64>()
+        / n;
+    Some(covariance / (sa * sb)).filter(|r| r.is_finite())
+}
+
+/// Prints the tables of `--against` for the markers of `by_id` found in `other`.
+fn print_against(by_id: &BTreeMap<u64, &[&PoseRow]>, other: &[PoseRow], path: &std::path::Path) {
+    let (other_markers, _, _) = series(other);
+    let other_by_id: BTreeMap<u64, &[&PoseRow]> = other_markers
+        .iter()
+        .map(|s| (s.id, s.rows.as_slice()))
+        .collect();
+    println!();
+    println!(
+        "against {}: the difference per marker (the motion both see cancels; its noise is both \
+         estimators' own noise combined)",
+        path.display()
+    );
+    let mut correlations = Vec::new();
+    for (id, rows) in by_id {
+        let Some(other_rows) = other_by_id.get(id) else {
+            println!(
+                "{:<14} {:>7} (not in {})",
+                format!("{id} − other"),
+                0,
+                path.display()
+            );
+            continue;
+        };
+        let (diff, [a, b]) = difference(rows, other_rows, format!("{id} − other"));
+        if diff.x.is_empty() {
+            println!("{:<14} {:>7} (no frame in common)", diff.name, 0);
+            continue;
+        }
+        diff.print();
+        let r = |x: &[f64], y: &[f64]| {
+            second_difference_correlation(x, y).map_or("-".to_string(), |r| format!("{r:.3}"))
+        };
+        correlations.push((*id, [r(&a.x, &b.x), r(&a.y, &b.y), r(&a.alpha, &b.alpha)]));
+    }
+    println!("correlation of the second differences with the other table (1: motion both see)");
+    println!("{:<14} {:>12} {:>12} {:>12}", "marker", "x", "y", "alpha");
+    for (id, [x, y, alpha]) in correlations {
+        println!("{id:<14} {x:>12} {y:>12} {alpha:>12}");
+    }
 }
 
 /// Runs `vernier stats`.
 pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
     let rows = read_table_file(&args.input)?;
+    let other = match &args.against {
+        Some(path) => Some((read_table_file(path)?, path)),
+        None => None,
+    };
     let (markers, _, _) = series(&rows);
     if markers.is_empty() {
         return Err(format!("{}: no pose in the table", args.input.display()));
@@ -181,6 +287,9 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
         } else {
             rel.print();
         }
+    }
+    if let Some((other, path)) = other {
+        print_against(&by_id, &other, path);
     }
     Ok(ExitCode::SUCCESS)
 }
