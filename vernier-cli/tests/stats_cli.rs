@@ -33,6 +33,12 @@ fn correlation(table: &str, id: u64) -> [f64; 3] {
     [values[0], values[1], values[2]]
 }
 
+/// The output of `vernier stats OURS --against OTHER`, which must succeed.
+fn stats_against(ours: &std::path::Path, other: &std::path::Path) -> String {
+    let out = stdout_of_success(vernier().args(["stats", s(ours), "--against", s(other)]));
+    String::from_utf8_lossy(&out).into_owned()
+}
+
 /// Writes a pose table of `(frame, id, x, y, alpha)` rows.
 fn write_table(path: &std::path::Path, rows: &[(u64, u64, f64, f64, f64)]) {
     let mut text = String::from("frame,id,x,y,alpha\n");
@@ -68,13 +74,7 @@ fn against_another_estimate_the_motion_cancels() {
     other.push((20, 4, 0.0, 0.0, 0.0));
     write_table(&dir.join("ours.csv"), &ours);
     write_table(&dir.join("other.csv"), &other);
-    let out = stdout_of_success(vernier().args([
-        "stats",
-        s(&dir.join("ours.csv")),
-        "--against",
-        s(&dir.join("other.csv")),
-    ]));
-    let table = String::from_utf8_lossy(&out).into_owned();
+    let table = stats_against(&dir.join("ours.csv"), &dir.join("other.csv"));
     let expected = 1.4826 * 4.0 / 6f64.sqrt();
     // samples, x std, x noise, y std, y noise, alpha std, alpha noise (µrad).
     let own = row(&table, "4 ");
@@ -95,13 +95,8 @@ fn against_another_estimate_the_motion_cancels() {
     assert!(correlation(&table, 4).iter().all(|r| *r > 0.99), "{table}");
     // A marker the other table lacks is named, not an error.
     write_table(&dir.join("other_id.csv"), &[(0, 5, 0.0, 0.0, 0.0)]);
-    let out = stdout_of_success(vernier().args([
-        "stats",
-        s(&dir.join("ours.csv")),
-        "--against",
-        s(&dir.join("other_id.csv")),
-    ]));
-    assert!(String::from_utf8_lossy(&out).contains("(not in"));
+    let table = stats_against(&dir.join("ours.csv"), &dir.join("other_id.csv"));
+    assert!(table.contains("(not in"), "{table}");
     // An unreadable other table fails before any output.
     let failed = common::run(&[
         "stats",
@@ -153,13 +148,7 @@ fn the_real_sequence_against_the_original() {
     detect.args(&images);
     std::fs::write(dir.join("ours.csv"), stdout_of_success(&mut detect)).unwrap();
     reference_as_pose_table(&dir.join("original.csv"));
-    let out = stdout_of_success(vernier().args([
-        "stats",
-        s(&dir.join("ours.csv")),
-        "--against",
-        s(&dir.join("original.csv")),
-    ]));
-    let table = String::from_utf8_lossy(&out).into_owned();
+    let table = stats_against(&dir.join("ours.csv"), &dir.join("original.csv"));
     println!("{table}");
     // Positions follow the original's motion (issue target: second differences correlate
     // at 0.95 or more).
