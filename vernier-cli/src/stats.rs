@@ -90,7 +90,13 @@ impl Samples {
         }
     }
 
+    /// Adds a sample; alpha continues the series across ±π (unwrapped), so that a yaw that
+    /// crosses it is not read as a jump of 2π.
     fn push(&mut self, x: f64, y: f64, alpha: f64) {
+        let alpha = match self.alpha.last() {
+            Some(&previous) => previous + wrap_angle(alpha - previous),
+            None => alpha,
+        };
         self.x.push(x);
         self.y.push(y);
         self.alpha.push(alpha);
@@ -266,14 +272,13 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
         "", "", "(pattern units)", "(pattern units)", "(µrad)"
     );
     for s in &markers {
-        let get = |f: fn(&PoseRow) -> Option<f64>| s.rows.iter().filter_map(|r| f(r)).collect();
-        Samples {
-            name: format!("{}", s.id),
-            x: get(|r| r.x),
-            y: get(|r| r.y),
-            alpha: get(|r| r.alpha),
+        let mut own = Samples::new(format!("{}", s.id));
+        for r in &s.rows {
+            if let (Some(x), Some(y), Some(alpha)) = (r.x, r.y, r.alpha) {
+                own.push(x, y, alpha);
+            }
         }
-        .print();
+        own.print();
     }
     for (a, b) in pairs {
         let (Some(ra), Some(rb)) = (by_id.get(&a), by_id.get(&b)) else {
@@ -347,6 +352,19 @@ mod tests {
         assert_eq!(rel.x.len(), 1);
         assert!((rel.x[0] - 2.0).abs() < 1e-12 && rel.y[0].abs() < 1e-12);
         assert!((rel.alpha[0] - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+    }
+
+    #[test]
+    fn alpha_series_continue_across_pi() {
+        let mut s = Samples::new("yaw".into());
+        for alpha in [3.1, -3.1, -3.0, 3.12] {
+            s.push(0.0, 0.0, alpha);
+        }
+        let tau = std::f64::consts::TAU;
+        let expected = [3.1, tau - 3.1, tau - 3.0, 3.12];
+        for (got, want) in s.alpha.iter().zip(expected) {
+            assert!((got - want).abs() < 1e-12, "{:?}", s.alpha);
+        }
     }
 
     #[test]
