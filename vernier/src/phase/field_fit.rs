@@ -691,16 +691,47 @@ struct HarmonicBank {
     slope1_im: [f32; BANK],
     slope2_re: [f32; BANK],
     slope2_im: [f32; BANK],
-    /// `Σ ψ·e^{−ih·φ}` (re, im) over the current row …
-    row_re: [f32; BANK],
-    row_im: [f32; BANK],
-    /// … and over the rows before it.
-    sum_re: [f64; BANK],
-    sum_im: [f64; BANK],
-    /// `Σ w·e^{2ih·φ}` (re, im) over the current row and the rows before it: each harmonic's
-    /// overlap with its own conjugate ([`amplitude_step`]), taken on the first sweep only.
-    row_overlap: [[f32; BANK]; 2],
-    overlap: [[f64; BANK]; 2],
+    /// `Σ ψ·e^{−ih·φ}`: the demodulation sums.
+    demodulated: RowSums,
+    /// `Σ w·e^{2ih·φ}`: each harmonic's overlap with its own conjugate ([`amplitude_step`]),
+    /// on the sweep that measures it ([`HarmonicBank::add_overlap`]) only.
+    overlap: Option<RowSums>,
+}
+
+/// Complex sums per harmonic (re, im), kept in single precision over the current row (the
+/// vectorised sweep) and in double precision over the rows before it.
+struct RowSums {
+    row: [[f32; BANK]; 2],
+    total: [[f64; BANK]; 2],
+}
+
+impl Default for RowSums {
+    fn default() -> Self {
+        RowSums {
+            row: [[0.0; BANK]; 2],
+            total: [[0.0; BANK]; 2],
+        }
+    }
+}
+
+impl RowSums {
+    /// Adds the current row's sums of the first `n` harmonics to the totals and clears them.
+    fn flush_row(&mut self, n: usize) {
+        for (total, row) in self.total.iter_mut().zip(&mut self.row) {
+            for (t, r) in total[..n].iter_mut().zip(&row[..n]) {
+                *t += *r as f64;
+            }
+            *row = [0.0; BANK];
+        }
+    }
+
+    /// The totals of the first `n` harmonics as complex numbers (current row included).
+    fn complex(&mut self, n: usize) -> Vec<Complex64> {
+        self.flush_row(n);
+        (0..n)
+            .map(|k| Complex64::new(self.total[0][k], self.total[1][k]))
+            .collect()
+    }
 }
 
 /// The first `m` values of `v` in whole lanes.
@@ -728,12 +759,8 @@ impl HarmonicBank {
             slope1_im: zero,
             slope2_re: zero,
             slope2_im: zero,
-            row_re: zero,
-            row_im: zero,
-            sum_re: [0.0; BANK],
-            sum_im: [0.0; BANK],
-            row_overlap: [zero; 2],
-            overlap: [[0.0; BANK]; 2],
+            demodulated: RowSums::default(),
+            overlap: None,
         };
         for (k, &((h1, h2), a)) in harmonics.iter().take(n).enumerate() {
             let step =
@@ -778,18 +805,12 @@ impl HarmonicBank {
         }
     }
 
-    /// Adds the current row's demodulation sums to the totals and clears them.
+    /// Adds the current row's sums to the totals and clears them.
     fn flush_row(&mut self) {
-        for k in 0..self.n {
-            self.sum_re[k] += self.row_re[k] as f64;
-            self.sum_im[k] += self.row_im[k] as f64;
-            for part in 0..2 {
-                self.overlap[part][k] += self.row_overlap[part][k] as f64;
-            }
+        self.demodulated.flush_row(self.n);
+        if let Some(overlap) = &mut self.overlap {
+            overlap.flush_row(self.n);
         }
-        self.row_re = [0.0; BANK];
-        self.row_im = [0.0; BANK];
-        self.row_overlap = [[0.0; BANK]; 2];
     }
 
     /// Exponentials `columns` pixels further along the row.
@@ -846,7 +867,8 @@ impl HarmonicBank {
     fn demodulate(&mut self, psi: f64) {
         let m = self.padded;
         let psi = psi as f32;
-        let (sr, si) = (&mut self.row_re[..m], &mut self.row_im[..m]);
+        let [sr, si] = &mut self.demodulated.row;
+        let (sr, si) = (&mut sr[..m], &mut si[..m]);
         let (re, im) = (&self.re[..m], &self.im[..m]);
         for k in 0..m {
             sr[k] += psi * re[k];
@@ -859,7 +881,8 @@ impl HarmonicBank {
     fn add_overlap(&mut self, w: f64) {
         let m = self.padded;
         let w = w as f32;
-        let [or, oi] = &mut self.row_overlap;
+        let [or, oi] = &mut self.overlap.get_or_insert_with(RowSums::default).row;
+        let (or, oi) = (&mut or[..m], &mut oi[..m]);
         let (re, im) = (&self.re[..m], &self.im[..m]);
         for k in 0..m {
             or[k] += w * (re[k] * re[k] - im[k] * im[k]);
@@ -867,20 +890,16 @@ impl HarmonicBank {
         }
     }
 
-    /// The overlap sums as complex numbers, in the harmonics' order.
+    /// The overlap sums as complex numbers, in the harmonics' order (zero where none was
+    /// added).
     fn overlaps(&mut self) -> Vec<Complex64> {
-        self.flush_row();
-        (0..self.n)
-            .map(|k| Complex64::new(self.overlap[0][k], self.overlap[1][k]))
-            .collect()
+        let n = self.n;
+        self.overlap.get_or_insert_with(RowSums::default).complex(n)
     }
 
     /// The demodulation sums as complex numbers, in the harmonics' order.
     fn sums(&mut self) -> Vec<Complex64> {
-        self.flush_row();
-        (0..self.n)
-            .map(|k| Complex64::new(self.sum_re[k], self.sum_im[k]))
-            .collect()
+        self.demodulated.complex(self.n)
     }
 }
 
