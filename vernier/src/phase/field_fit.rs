@@ -127,9 +127,10 @@ const CONVERGED: f64 = 1e-5;
 /// same error left, without the sweep that would only confirm it.
 const CONVERGED_TAIL: f64 = 0.1;
 /// Once the weights are frozen, an iteration whose largest plane step still exceeds
-/// [`GIVE_UP_STEP`] must be at most this fraction of the previous one (Gauss–Newton on a
-/// fixed problem contracts 10–100× per iteration on real and rendered fields); otherwise the
-/// fit is given up …
+/// [`GIVE_UP_STEP`] must be at most this fraction of the previous one, or at most its square
+/// of the one before (a pair of sweeps contracting, [`StepHistory::contraction`]): Gauss–Newton
+/// on a fixed problem contracts 10–100× per iteration on real and rendered fields; otherwise
+/// the fit is given up …
 const MIN_CONTRACTION: f64 = 0.5;
 /// … radians of phase at the field's edge (1.6e-4 of a period). A smaller step may stall for
 /// one iteration (a weakly determined harmonic settling) and still converge; two slow
@@ -1534,7 +1535,7 @@ fn converge(
     goal: &Goal,
     run: &mut Run,
 ) -> Result<Step, Stall> {
-    let mut previous_largest = f64::INFINITY;
+    let mut steps = StepHistory::default();
     // The previous iteration did not contract (see below).
     let mut slow_before = false;
     for stage_iteration in 1..=MAX_ITERATIONS {
@@ -1542,7 +1543,7 @@ fn converge(
         let iteration = run.iterations;
         let freeze = run.frozen_at.is_none()
             && iteration > ROBUST_ITERATIONS
-            && previous_largest <= SETTLED_STEP;
+            && steps.previous <= SETTLED_STEP;
         let mut step = iterate(image, field, mask, model, freeze, goal).ok_or(Stall::Failed)?;
         let mut largest = 0.0f64;
         let mut moved = [0.0; 2];
@@ -1580,30 +1581,34 @@ fn converge(
         // With the weights frozen, the iterations solve one fixed problem and contract fast;
         // one that does not (harmonics the weights couple too strongly for their separate
         // updates, a field the model does not describe) would use up every iteration and
-        // still be refused, so it is given up at once: a large step that does not contract,
-        // or a small one that does not contract twice running (one slow iteration is a weakly
+        // still be refused, so it is given up at once: a large step that contracts neither
+        // over the last sweep nor over the last two ([`StepHistory::contraction`]), or a
+        // small one that does not contract twice running (one slow iteration is a weakly
         // determined harmonic settling).
+        let contraction = steps.contraction(largest);
         let slow = run.frozen_at.is_some_and(|f| iteration > f + 1)
-            && largest > MIN_CONTRACTION * previous_largest
+            && contraction.is_some_and(|(_, fastest)| fastest > MIN_CONTRACTION)
             && largest >= CONVERGED;
         if slow && (largest > GIVE_UP_STEP || slow_before) {
             log::debug!(
-                "whole-field fit not contracting: step {largest:.1e} rad after {previous_largest:.1e}"
+                "whole-field fit not contracting: step {largest:.1e} rad after {:.1e}",
+                steps.previous
             );
             return Err(Stall::Failed);
         }
         slow_before = slow;
-        // The steps still to come: the geometric tail of the frozen problem's contraction
-        // (which needs a previous step of this stage).
-        let measured = previous_largest.is_finite();
-        let contraction = largest / previous_largest;
-        let tail = match run.frozen_at {
-            Some(f) if measured && iteration > f && contraction < 1.0 => {
-                largest * contraction / (1.0 - contraction)
+        // The steps still to come: the geometric tail of the frozen problem's contraction over
+        // the last sweep (which needs a previous step of this stage). Gauss–Newton speeds up
+        // as it converges, so the last sweep's contraction is the one still to come; where a
+        // pair of sweeps contracts and its second step grows, the next pair's first step is
+        // large again and the test waits for it.
+        let tail = match (run.frozen_at, contraction) {
+            (Some(f), Some((last, _))) if iteration > f && last < 1.0 => {
+                largest * last / (1.0 - last)
             }
             _ => f64::INFINITY,
         };
-        previous_largest = largest;
+        steps.push(largest);
         let converged = largest < CONVERGED || tail < CONVERGED_TAIL * CONVERGED;
         if run.frozen_at.is_some() && converged {
             return Ok(step);
@@ -1616,6 +1621,53 @@ fn converge(
         }
     }
     Err(Stall::Failed)
+}
+
+/// The largest plane steps of a stage's last two iterations, radians (infinite before there
+/// are any).
+struct StepHistory {
+    previous: f64,
+    before_previous: f64,
+}
+
+impl Default for StepHistory {
+    fn default() -> Self {
+        Self {
+            previous: f64::INFINITY,
+            before_previous: f64::INFINITY,
+        }
+    }
+}
+
+impl StepHistory {
+    /// The contraction per iteration that a new step `largest` shows over the last iteration,
+    /// and the faster of that and its mean over the last two (geometric); `None` on a stage's
+    /// first step.
+    ///
+    /// Where dust or hair couples the harmonics' updates with the planes', the alternation
+    /// overshoots and a mode of the error changes sign from one sweep to the next: the steps
+    /// shrink by pairs (2.3e-3, 2.5e-3, 4.4e-4, 5.0e-4, 8.7e-5, ... rad on a hair-crossed
+    /// marker), one sweep of each pair growing a little while the pair contracts 5×. Judged
+    /// over one sweep, such a fit looks stalled; over two, it contracts.
+    fn contraction(&self, largest: f64) -> Option<(f64, f64)> {
+        if !self.previous.is_finite() {
+            return None;
+        }
+        let last = largest / self.previous;
+        let pair = (largest / self.before_previous).sqrt();
+        // `pair` is 0 while there is no step before the previous one.
+        let fastest = if self.before_previous.is_finite() {
+            last.min(pair)
+        } else {
+            last
+        };
+        Some((last, fastest))
+    }
+
+    fn push(&mut self, largest: f64) {
+        self.before_previous = self.previous;
+        self.previous = largest;
+    }
 }
 
 /// Adds the correction `δφ = α·X + β·Y + γ` (`d = (α, β, γ)`, in the normalised coordinates
@@ -2316,6 +2368,29 @@ mod tests {
         let fit = fit_dot_field(&image, start, &mask).unwrap();
         assert_planes(&fit, &truth, 1e-6, 1e-8);
         assert!(fit.inlier_fraction > 0.95, "{}", fit.inlier_fraction);
+    }
+
+    #[test]
+    fn steps_that_shrink_by_pairs_contract() {
+        let mut steps = StepHistory::default();
+        assert!(steps.contraction(1e-2).is_none());
+        // A hair-crossed marker's frozen sweeps: each pair contracts 5×, its second step grows.
+        let mut judged = Vec::new();
+        for s in [1.3e-2, 2.3e-3, 2.5e-3, 4.4e-4, 5.0e-4, 8.7e-5] {
+            if let Some((last, fastest)) = steps.contraction(s) {
+                judged.push((last > MIN_CONTRACTION, fastest > MIN_CONTRACTION));
+            }
+            steps.push(s);
+        }
+        assert_eq!(judged[1], (true, false), "2.5e-3 after 2.3e-3 and 1.3e-2");
+        assert!(judged.iter().all(|&(_, slow)| !slow));
+        // Steps that stay put are slow either way.
+        let mut flat = StepHistory::default();
+        for s in [2e-3, 1.9e-3] {
+            flat.push(s);
+        }
+        let (last, fastest) = flat.contraction(1.8e-3).expect("a previous step");
+        assert!(last > MIN_CONTRACTION && fastest > MIN_CONTRACTION);
     }
 
     #[test]
