@@ -13,6 +13,11 @@
 //! the difference of the two series holds no motion, only the two estimators' own noise
 //! combined, an upper bound of each one's; the correlation of their second differences says
 //! how much of them is motion both see (1) or noise of their own (0).
+//!
+//! A noise figure from a short sequence is itself uncertain: from 10 frames (8 second
+//! differences) it is within ×0.69–×1.73 of the true σ two times in three. The table ends
+//! with that spread for its sample counts, simulated on white noise ([`noise_figure_spread`]),
+//! so that two figures are not read as different when they are not.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -65,6 +70,69 @@ pub fn second_difference_noise(v: &[f64]) -> Option<f64> {
     let mid = d.len() / 2;
     let (_, median, _) = d.select_nth_unstable_by(mid, f64::total_cmp);
     Some(1.4826 * *median / 6f64.sqrt())
+}
+
+/// White-noise series simulated per sample count by [`noise_figure_spread`].
+const SPREAD_TRIALS: usize = 4000;
+/// Longest series simulated; longer ones scale its spread by `√((m − 2)/(n − 2))` (the
+/// estimate is then nearly normal, its deviation falling as one over the root of the second
+/// differences).
+const SPREAD_MAX_SIMULATED: usize = 1000;
+
+/// The spread of [`second_difference_noise`] over series of `n` samples of white noise of
+/// unit deviation: its 5, 16, 84 and 95 % quantiles (so the 68 % and 90 % intervals of a
+/// noise figure over the true σ). Seeded: the same numbers on every run. `None` below 3
+/// samples.
+pub fn noise_figure_spread(n: usize) -> Option<[f64; 4]> {
+    use rand::{rngs::SmallRng, SeedableRng};
+    use rand_distr::{Distribution, StandardNormal};
+    if n < 3 {
+        return None;
+    }
+    let m = n.min(SPREAD_MAX_SIMULATED);
+    let mut rng = SmallRng::seed_from_u64(0x5eed);
+    let mut series = vec![0.0; m];
+    let mut figures: Vec<f64> = (0..SPREAD_TRIALS)
+        .filter_map(|_| {
+            for v in &mut series {
+                *v = StandardNormal.sample(&mut rng);
+            }
+            second_difference_noise(&series)
+        })
+        .collect();
+    figures.sort_by(f64::total_cmp);
+    let scale = ((m - 2) as f64 / (n - 2) as f64).sqrt();
+    let quantile = |q: f64| {
+        let i = ((q * figures.len() as f64) as usize).min(figures.len().saturating_sub(1));
+        1.0 + (figures.get(i).copied().unwrap_or(f64::NAN) - 1.0) * scale
+    };
+    Some([0.05, 0.16, 0.84, 0.95].map(quantile))
+}
+
+/// Most sample counts whose spread is printed; beyond, the smallest and the largest (the
+/// others lie between).
+const MAX_SPREAD_LINES: usize = 4;
+
+/// Prints [`noise_figure_spread`] for the sample counts of `counts`.
+fn print_spread(counts: &std::collections::BTreeSet<usize>) {
+    let shown: Vec<usize> = if counts.len() > MAX_SPREAD_LINES {
+        counts
+            .first()
+            .into_iter()
+            .chain(counts.last())
+            .copied()
+            .collect()
+    } else {
+        counts.iter().copied().collect()
+    };
+    for n in shown {
+        if let Some([q05, q16, q84, q95]) = noise_figure_spread(n) {
+            println!(
+                "a noise figure from {n} samples of white noise is within ×{q16:.2}–×{q84:.2} of \
+                 the true σ two times in three, ×{q05:.2}–×{q95:.2} nine times in ten"
+            );
+        }
+    }
 }
 
 /// `v[n+1] − 2v[n] + v[n−1]` for every inner sample.
@@ -192,6 +260,7 @@ fn print_against(by_id: &BTreeMap<u64, &[&PoseRow]>, other: &[PoseRow], path: &s
         path.display()
     );
     let mut correlations = Vec::new();
+    let mut counts = std::collections::BTreeSet::new();
     for (id, rows) in by_id {
         let Some(other_rows) = other_by_id.get(id) else {
             println!(
@@ -208,11 +277,13 @@ fn print_against(by_id: &BTreeMap<u64, &[&PoseRow]>, other: &[PoseRow], path: &s
             continue;
         }
         diff.print();
+        counts.insert(diff.x.len());
         let r = |x: &[f64], y: &[f64]| {
             second_difference_correlation(x, y).map_or("-".to_string(), |r| format!("{r:.3}"))
         };
         correlations.push((*id, [r(&a.x, &b.x), r(&a.y, &b.y), r(&a.alpha, &b.alpha)]));
     }
+    print_spread(&counts);
     println!("correlation of the second differences with the other table (1: motion both see)");
     println!("{:<14} {:>12} {:>12} {:>12}", "marker", "x", "y", "alpha");
     for (id, [x, y, alpha]) in correlations {
@@ -271,6 +342,7 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
         "{:<14} {:>7} {:>25} {:>25} {:>25}",
         "", "", "(pattern units)", "(pattern units)", "(µrad)"
     );
+    let mut counts = std::collections::BTreeSet::new();
     for s in &markers {
         let mut own = Samples::new(format!("{}", s.id));
         for r in &s.rows {
@@ -279,6 +351,7 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
             }
         }
         own.print();
+        counts.insert(own.x.len());
     }
     for (a, b) in pairs {
         let (Some(ra), Some(rb)) = (by_id.get(&a), by_id.get(&b)) else {
@@ -291,8 +364,10 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
             println!("{:<14} {:>7} (never seen together)", rel.name, 0);
         } else {
             rel.print();
+            counts.insert(rel.x.len());
         }
     }
+    print_spread(&counts);
     if let Some((other, path)) = other {
         print_against(&by_id, &other, path);
     }
@@ -328,6 +403,27 @@ mod tests {
         let (_, std) = mean_std(&v);
         assert!(std > 100.0 * sigma);
         assert_eq!(second_difference_noise(&v[..2]), None);
+    }
+
+    #[test]
+    fn the_spread_of_a_noise_figure_narrows_with_the_samples() {
+        let [q05, q16, q84, q95] = noise_figure_spread(10).expect("10 samples");
+        assert!(
+            q05 < q16 && q16 < 1.0 && 1.0 < q84 && q84 < q95,
+            "{q05} {q16} {q84} {q95}"
+        );
+        // Eight second differences: a wide spread.
+        assert!(q16 < 0.8 && q84 > 1.2, "{q16} {q84}");
+        // Simulated (1000) and scaled (40 000) counts: the median's deviation over n − 2
+        // correlated second differences, about 1.4/√(n − 2) of σ (±4.5 % at 1000 samples).
+        for n in [1000, 40_000] {
+            let [_, lo, hi, _] = noise_figure_spread(n).expect("many samples");
+            let half = 0.5 * (hi - lo);
+            let expected = 1.4 / ((n - 2) as f64).sqrt();
+            assert!((half / expected - 1.0).abs() < 0.3, "{n}: {lo} {hi}");
+        }
+        assert_eq!(noise_figure_spread(2), None);
+        assert_eq!(noise_figure_spread(10), noise_figure_spread(10));
     }
 
     #[test]
