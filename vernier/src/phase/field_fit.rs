@@ -1241,8 +1241,8 @@ pub fn fit_dot_field(
 }
 
 /// [`fit_dot_field`], given up (`None`) on its first sweep with settled robust weights when it
-/// cannot beat `rival`: no spoiled cell, and a predicted σ ([`FieldFit::beats`]) already
-/// [`HOPELESS`] times the window's. The fits it returns are those of [`fit_dot_field`] to the
+/// cannot beat `rival`: no spoiled cell, and a predicted σ ([`FieldFit::beats`]) already ten
+/// times the window's. The fits it returns are those of [`fit_dot_field`] to the
 /// last digit; where it gives up, the fit would have lost to the window anyway (or failed).
 ///
 /// With `tilt_centre` (lattice coordinates of the marker centre, periods, in the numbering of
