@@ -15,11 +15,11 @@
 //! how much of them is motion both see (1) or noise of their own (0).
 //!
 //! A noise figure from a short sequence is itself uncertain: from 10 frames (8 second
-//! differences) it is within ×0.69–×1.73 of the true σ two times in three. The table ends
-//! with that spread for its sample counts, simulated on white noise ([`noise_figure_spread`]),
-//! so that two figures are not read as different when they are not.
+//! differences) it is within ×0.69–×1.73 of the true σ two times in three. The output ends
+//! with that spread for the sample counts of its rows, simulated on white noise
+//! ([`noise_figure_spread`]), so that two figures are not read as different when they are not.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -114,7 +114,7 @@ pub fn noise_figure_spread(n: usize) -> Option<[f64; 4]> {
 const MAX_SPREAD_LINES: usize = 4;
 
 /// Prints [`noise_figure_spread`] for the sample counts of `counts`.
-fn print_spread(counts: &std::collections::BTreeSet<usize>) {
+fn print_spread(counts: &BTreeSet<usize>) {
     let shown: Vec<usize> = if counts.len() > MAX_SPREAD_LINES {
         counts
             .first()
@@ -170,7 +170,9 @@ impl Samples {
         self.alpha.push(alpha);
     }
 
-    fn print(&self) {
+    /// Prints the row and adds its sample count to `counts` (for [`print_spread`]).
+    fn print(&self, counts: &mut BTreeSet<usize>) {
+        counts.insert(self.x.len());
         let cell = |v: &[f64], scale: f64| {
             let scaled: Vec<f64> = v.iter().map(|x| x * scale).collect();
             let (_, std) = mean_std(&scaled);
@@ -246,8 +248,14 @@ fn second_difference_correlation(a: &[f64], b: &[f64]) -> Option<f64> {
     Some(covariance / (sa * sb)).filter(|r| r.is_finite())
 }
 
-/// Prints the tables of `--against` for the markers of `by_id` found in `other`.
-fn print_against(by_id: &BTreeMap<u64, &[&PoseRow]>, other: &[PoseRow], path: &std::path::Path) {
+/// Prints the tables of `--against` for the markers of `by_id` found in `other`; the sample
+/// counts of its rows go to `counts`.
+fn print_against(
+    by_id: &BTreeMap<u64, &[&PoseRow]>,
+    other: &[PoseRow],
+    path: &std::path::Path,
+    counts: &mut BTreeSet<usize>,
+) {
     let (other_markers, _, _) = series(other);
     let other_by_id: BTreeMap<u64, &[&PoseRow]> = other_markers
         .iter()
@@ -260,7 +268,6 @@ fn print_against(by_id: &BTreeMap<u64, &[&PoseRow]>, other: &[PoseRow], path: &s
         path.display()
     );
     let mut correlations = Vec::new();
-    let mut counts = std::collections::BTreeSet::new();
     for (id, rows) in by_id {
         let Some(other_rows) = other_by_id.get(id) else {
             println!(
@@ -276,14 +283,12 @@ fn print_against(by_id: &BTreeMap<u64, &[&PoseRow]>, other: &[PoseRow], path: &s
             println!("{:<14} {:>7} (no frame in common)", diff.name, 0);
             continue;
         }
-        diff.print();
-        counts.insert(diff.x.len());
+        diff.print(counts);
         let r = |x: &[f64], y: &[f64]| {
             second_difference_correlation(x, y).map_or("-".to_string(), |r| format!("{r:.3}"))
         };
         correlations.push((*id, [r(&a.x, &b.x), r(&a.y, &b.y), r(&a.alpha, &b.alpha)]));
     }
-    print_spread(&counts);
     println!("correlation of the second differences with the other table (1: motion both see)");
     println!("{:<14} {:>12} {:>12} {:>12}", "marker", "x", "y", "alpha");
     for (id, [x, y, alpha]) in correlations {
@@ -342,7 +347,7 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
         "{:<14} {:>7} {:>25} {:>25} {:>25}",
         "", "", "(pattern units)", "(pattern units)", "(µrad)"
     );
-    let mut counts = std::collections::BTreeSet::new();
+    let mut counts = BTreeSet::new();
     for s in &markers {
         let mut own = Samples::new(format!("{}", s.id));
         for r in &s.rows {
@@ -350,8 +355,7 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
                 own.push(x, y, alpha);
             }
         }
-        own.print();
-        counts.insert(own.x.len());
+        own.print(&mut counts);
     }
     for (a, b) in pairs {
         let (Some(ra), Some(rb)) = (by_id.get(&a), by_id.get(&b)) else {
@@ -363,14 +367,14 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
         if rel.x.is_empty() {
             println!("{:<14} {:>7} (never seen together)", rel.name, 0);
         } else {
-            rel.print();
-            counts.insert(rel.x.len());
+            rel.print(&mut counts);
         }
     }
-    print_spread(&counts);
     if let Some((other, path)) = other {
-        print_against(&by_id, &other, path);
+        print_against(&by_id, &other, path, &mut counts);
     }
+    println!();
+    print_spread(&counts);
     Ok(ExitCode::SUCCESS)
 }
 

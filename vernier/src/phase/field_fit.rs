@@ -1654,10 +1654,8 @@ impl StepHistory {
             return None;
         }
         let last = largest / self.previous;
-        let pair = (largest / self.before_previous).sqrt();
-        // `pair` is 0 while there is no step before the previous one.
         let fastest = if self.before_previous.is_finite() {
-            last.min(pair)
+            last.min((largest / self.before_previous).sqrt())
         } else {
             last
         };
