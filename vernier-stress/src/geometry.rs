@@ -51,6 +51,17 @@ impl Homography {
         Some(Homography { forward, inverse })
     }
 
+    /// The map `p ↦ forward·(p, 1)` (homogeneous, row-major 3×3); `None` when singular.
+    pub fn from_matrix(forward: Matrix3<f64>) -> Option<Self> {
+        let inverse = forward.try_inverse()?;
+        Some(Homography { forward, inverse })
+    }
+
+    /// The forward map's matrix ([`Homography::from_matrix`]).
+    pub fn matrix(&self) -> Matrix3<f64> {
+        self.forward
+    }
+
     /// True for the identity map.
     pub fn is_identity(&self) -> bool {
         self.forward == Matrix3::identity()

@@ -42,6 +42,7 @@ pub mod evaluate;
 pub mod geometry;
 pub mod markers;
 pub mod raster;
+pub mod real;
 pub mod scene;
 pub mod suite;
 

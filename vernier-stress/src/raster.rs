@@ -293,13 +293,30 @@ pub fn add_marker(
 /// `samples × samples` bilinear samples of the plane at the preimages of points spread over
 /// its footprint; `fill` where the preimage leaves the plane raster.
 pub fn warp(source: &Plane, homography: &Homography, samples: usize, fill: f32) -> Plane {
+    warp_into(
+        source,
+        homography,
+        samples,
+        fill,
+        (source.width, source.height),
+    )
+}
+
+/// [`warp`] onto a `size = (width, height)` raster (the homography's image frame).
+pub fn warp_into(
+    source: &Plane,
+    homography: &Homography,
+    samples: usize,
+    fill: f32,
+    size: (usize, usize),
+) -> Plane {
     let m = homography.inverse_matrix();
     let n = samples.max(1);
     let offsets: Vec<f64> = (0..n).map(|i| (i as f64 + 0.5) / n as f64 - 0.5).collect();
     let norm = 1.0 / (n * n) as f32;
-    let mut out = Plane::filled(source.width, source.height, fill);
-    for r in 0..source.height {
-        for c in 0..source.width {
+    let mut out = Plane::filled(size.0, size.1, fill);
+    for r in 0..size.1 {
+        for c in 0..size.0 {
             let mut s = 0.0f32;
             for dy in &offsets {
                 for dx in &offsets {
@@ -314,7 +331,7 @@ pub fn warp(source: &Plane, homography: &Homography, samples: usize, fill: f32) 
                     };
                 }
             }
-            out.data[r * source.width + c] = s * norm;
+            out.data[r * size.0 + c] = s * norm;
         }
     }
     out
