@@ -1,7 +1,9 @@
-//! Regression test for the stamp failure of issue 11, rebuilt from a render at a known pose and
-//! detected with only the settings a user types (`--stamp --period P --bitmap D --bitmap G`):
-//! "a bright-field colour microscope image of two stamps (D and G), blue-tinted, stamps darker
-//! than the substrate inside a bright frame: neither stamp found".
+//! Regression tests for stamp failures, rebuilt from renders at a known pose and detected with
+//! only the settings a user types (`--stamp --period P --bitmap …`):
+//! * issue 11's "a bright-field colour microscope image of two stamps (D and G), blue-tinted,
+//!   stamps darker than the substrate inside a bright frame: neither stamp found";
+//! * the real-image stress bench's (`cargo bench -p vernier-stress --bench real_views`) faint
+//!   `stamp69x69` under a steep illumination gradient, read mirrored (and so dropped).
 
 mod common;
 
@@ -106,5 +108,60 @@ fn dark_blue_tinted_stamps_inside_a_bright_rim_are_found() {
                 .unwrap_or_else(|| panic!("stamp {id} at {at:?} missing: {found:#?}"));
             assert_eq!(m.id, *id);
         }
+    }
+}
+
+/// `stamp69x69` (nearly its own mirror image: only its glyphs tell them apart) as bright dots
+/// of low contrast under a steep illumination gradient, seen turned by ~274°, 8 bits (the
+/// real-image stress bench's scene 879 of `stamp1.png`): the stamp and its proper reading
+/// (not mirrored).
+fn faint_stamp_under_a_gradient(alpha: f64) -> (GreyImage, Vector2<f64>) {
+    let dir = common::data_dir().join("layouts");
+    let bitmap = BitmapLayout::from_image_file(PERIOD, dir.join("stamp69x69.png")).unwrap();
+    let (w, h) = (520usize, 520usize);
+    let center = Vector2::new((w / 2) as f64, (h / 2) as f64);
+    let at = Vector2::new(266.0, 251.0);
+    let pose = Pose::from_origin_in_image(at - center, alpha, PERIOD / 10.9);
+    let mut options = RenderOptions::new(w, h);
+    options.blur_sigma = 1.0;
+    let material = render_scene(&[(&bitmap as &dyn Layout, pose)], &options).unwrap();
+    let pixels = material
+        .pixels()
+        .iter()
+        .enumerate()
+        .map(|(i, &m)| {
+            let (c, r) = ((i % w) as f64 / w as f64, (i / w) as f64 / h as f64);
+            // Gain from 1 down to 0.43 across the field, a little vignetting.
+            let light =
+                1.0 - 0.5 * (0.8 * c + 0.2 * r) - 0.07 * ((c - 0.5).powi(2) + (r - 0.5).powi(2));
+            let grey = light * (0.70 + 0.15 * m as f64);
+            ((grey.clamp(0.0, 1.0) * 255.0).round() / 255.0) as f32
+        })
+        .collect();
+    (
+        GreyImage::new(w, h, pixels).unwrap(),
+        center + pose.origin_in_image(),
+    )
+}
+
+#[test]
+fn a_faint_nearly_symmetric_stamp_under_a_steep_gradient_is_read_the_right_way_round() {
+    let dir = common::data_dir().join("layouts");
+    let settings = DetectorSettings {
+        pattern_type: MarkerKind::Stamp,
+        period: Some(PERIOD),
+        bitmaps: vec![dir.join("stamp69x69.png")],
+        ..Default::default()
+    };
+    let mut detector = Detector::new(settings.to_config().unwrap()).unwrap();
+    for degrees in [274.2f64, 94.2, 4.2, 184.2] {
+        let (image, at) = faint_stamp_under_a_gradient(degrees.to_radians());
+        let found = detector.detect(&image).unwrap();
+        assert_eq!(found.len(), 1, "{degrees}°: {found:#?}");
+        assert!(
+            (found[0].origin_px - at).norm() < 1.0,
+            "{degrees}°: {found:#?}"
+        );
+        assert_eq!(found[0].pose.gamma, 0.0, "{degrees}°: read mirrored");
     }
 }

@@ -149,14 +149,86 @@ pub(crate) struct SearchRange {
 
 /// Best hypothesis over all `templates`, or `None` when the thumbnail has no contrast or no
 /// hypothesis overlaps it enough.
+///
+/// Hypotheses are ranked twice: on the raw levels, and on levels flattened for the light
+/// without any hypothesis (on the lattice's dot and gap cells, [`lattice_cells`]). Under an
+/// illumination gradient at low contrast, raw levels may correlate better with a wrong reading
+/// than with the right one (a mirrored `stamp69x69`, its glyph cells outweighed by the light),
+/// while large solid frames and glyphs spoil the hypothesis-free references. Of the two
+/// leaders, the one whose own cells correlate better on levels flattened with its own
+/// references ([`CellReader`]) wins.
 pub(crate) fn best_match(
     thumb: &Thumbnail,
     templates: &[Template],
     range: &SearchRange,
 ) -> Option<Match> {
+    let raw: Vec<Option<f64>> = thumb.values.iter().map(|v| v.map(f64::from)).collect();
+    let (dots, gaps) = lattice_cells(thumb);
+    let rankings: Vec<Vec<(Hypothesis, f64)>> = [Some(raw), flatten_levels(thumb, &dots, &gaps)]
+        .into_iter()
+        .flatten()
+        .filter_map(|levels| rank_hypotheses(thumb, templates, range, &levels))
+        .collect();
+    // Each ranking's leader, its cells read on levels flattened with its own references (an
+    // illumination gradient over a stamp of low contrast lowers the correlation of raw
+    // levels: 0.43 for stamp G of `stampPatternImage_15um.jpg` at contrast × 0.3 under a gain
+    // from 0.3 to 1). Raw first: a tie keeps it.
+    let (chosen, reader, correlation) = rankings
+        .iter()
+        .enumerate()
+        .map(|(k, ranked)| {
+            let (leader, r) = ranked[0];
+            let reader = CellReader::new(thumb, templates, &leader);
+            let correlation = reader
+                .as_ref()
+                .and_then(|c| c.correlation(thumb, |i| predicts_set(templates, &leader, i)))
+                .unwrap_or(r);
+            (k, reader, correlation)
+        })
+        .reduce(|best, next| if next.2 > best.2 { next } else { best })?;
+    let scored = &rankings[chosen];
+    let winner = scored[0].0;
+    // Rivals: the best other placement, and the other bitmaps at the winner's placement.
+    let runner_up = scored.iter().skip(1).map(|&(h, _)| h).find(|h| {
+        let placed_elsewhere =
+            h.orientation != winner.orientation || h.origin_cell != winner.origin_cell;
+        let possible = range.mirrored_allowed || !h.orientation.mirrored;
+        let self_mirror = h.bitmap == winner.bitmap
+            && h.orientation.mirrored
+            && !winner.orientation.mirrored
+            && distinguishing_cells(thumb, templates, &winner, h) == 0;
+        placed_elsewhere && possible && !self_mirror
+    });
+    let mut rivals: Vec<Hypothesis> = runner_up.into_iter().collect();
+    rivals.extend(
+        (0..templates.len())
+            .filter(|&k| k != winner.bitmap)
+            .map(|bitmap| Hypothesis { bitmap, ..winner }),
+    );
+    let vote = cell_vote(thumb, templates, &winner, reader.as_ref(), &rivals);
+    log::trace!("match {winner:?} r {correlation:.3} vote {vote:.3}; rivals {rivals:?}");
+    Some(Match {
+        bitmap: winner.bitmap,
+        orientation: winner.orientation,
+        origin_cell: winner.origin_cell,
+        correlation,
+        vote,
+    })
+}
+
+/// Every hypothesis over `templates` in `range` with its Pearson correlation on `levels`
+/// (row-major per thumbnail cell, `None` unseen), best first (a mirrored one ranked
+/// [`MIRROR_MARGIN`] lower); `None` when the levels do not vary or no hypothesis overlaps the
+/// seen cells enough.
+fn rank_hypotheses(
+    thumb: &Thumbnail,
+    templates: &[Template],
+    range: &SearchRange,
+    levels: &[Option<f64>],
+) -> Option<Vec<(Hypothesis, f64)>> {
     // Centred thumbnail, padded by the largest template radius so that every lookup is in
     // bounds; each entry holds (value − mean, 1) on seen cells and (0, 0) elsewhere.
-    let seen: Vec<f64> = thumb.values.iter().flatten().map(|&v| v as f64).collect();
+    let seen: Vec<f64> = levels.iter().flatten().copied().collect();
     let n = seen.len();
     if n < 16 {
         return None;
@@ -173,9 +245,9 @@ pub(crate) fn best_match(
     let mut grid = vec![[0.0f32; 2]; (pw * ph) as usize];
     for r in 0..thumb.len[1] {
         for c in 0..thumb.len[0] {
-            if let Some(v) = thumb.values[r * thumb.len[0] + c] {
+            if let Some(v) = levels[r * thumb.len[0] + c] {
                 let k = (r as i64 + pad) * pw + c as i64 + pad;
-                grid[k as usize] = [(v as f64 - mean) as f32, 1.0];
+                grid[k as usize] = [(v - mean) as f32, 1.0];
             }
         }
     }
@@ -252,41 +324,7 @@ pub(crate) fn best_match(
         }
     };
     scored.sort_by(|a, b| rank(b).total_cmp(&rank(a)));
-    let &(winner, correlation) = scored.first()?;
-    // Rivals: the best other placement, and the other bitmaps at the winner's placement.
-    let runner_up = scored.iter().skip(1).map(|&(h, _)| h).find(|h| {
-        let placed_elsewhere =
-            h.orientation != winner.orientation || h.origin_cell != winner.origin_cell;
-        let possible = range.mirrored_allowed || !h.orientation.mirrored;
-        let self_mirror = h.bitmap == winner.bitmap
-            && h.orientation.mirrored
-            && !winner.orientation.mirrored
-            && distinguishing_cells(thumb, templates, &winner, h) == 0;
-        placed_elsewhere && possible && !self_mirror
-    });
-    let mut rivals: Vec<Hypothesis> = runner_up.into_iter().collect();
-    rivals.extend(
-        (0..templates.len())
-            .filter(|&k| k != winner.bitmap)
-            .map(|bitmap| Hypothesis { bitmap, ..winner }),
-    );
-    // The winner's cells read on levels flattened for the light: an illumination gradient
-    // over a stamp of low contrast lowers the correlation of raw levels (0.43 for stamp G of
-    // `stampPatternImage_15um.jpg` at contrast × 0.3 under a gain from 0.3 to 1).
-    let reader = CellReader::new(thumb, templates, &winner);
-    let correlation = reader
-        .as_ref()
-        .and_then(|r| r.correlation(thumb, |i| predicts_set(templates, &winner, i)))
-        .unwrap_or(correlation);
-    let vote = cell_vote(thumb, templates, &winner, reader.as_ref(), &rivals);
-    log::trace!("match {winner:?} r {correlation:.3} vote {vote:.3}; rivals {rivals:?}");
-    Some(Match {
-        bitmap: winner.bitmap,
-        orientation: winner.orientation,
-        origin_cell: winner.origin_cell,
-        correlation,
-        vote,
-    })
+    (!scored.is_empty()).then_some(scored)
 }
 
 /// Smallest local contrast between the fitted dot and gap levels, in units of the whole
@@ -328,6 +366,59 @@ fn lattice_references(
     (dots, gaps)
 }
 
+/// The seen cells of `thumb` on the lattice's dot positions and gap centres, whatever the
+/// bitmap: mostly dots and open gaps, the rest (missing dots, a frame's or glyph's cells) few
+/// enough for [`LevelSurface::fit`] to leave out as outliers.
+fn lattice_cells(thumb: &Thumbnail) -> (CellSamples, CellSamples) {
+    let [cols, rows] = thumb.len;
+    let (mut dots, mut gaps) = (Vec::new(), Vec::new());
+    for r in 0..rows {
+        for c in 0..cols {
+            let Some(v) = thumb.values[r * cols + c] else {
+                continue;
+            };
+            let i = thumb.cell(c as i64, r as i64);
+            match (i[0].rem_euclid(2), i[1].rem_euclid(2)) {
+                (0, 0) => dots.push([c as f64, r as f64, v as f64]),
+                (1, 1) => gaps.push([c as f64, r as f64, v as f64]),
+                _ => {}
+            }
+        }
+    }
+    (dots, gaps)
+}
+
+/// Each seen cell's level relative to the light where it is, `n = (v − gaps)/(dots − gaps)`:
+/// 0 on an open gap, 1 on a dot, from quadratic surfaces fitted to the `dots` and `gaps`
+/// samples across the thumbnail ([`CellReader`]); row-major like the thumbnail, `None` where
+/// unseen. `None` when either surface cannot be fitted or the two do not differ.
+fn flatten_levels(
+    thumb: &Thumbnail,
+    dots: &[LevelSample],
+    gaps: &[LevelSample],
+) -> Option<Vec<Option<f64>>> {
+    let [cols, rows] = thumb.len;
+    // Cell positions scaled from the thumbnail's extent (at least two cells).
+    let extent = [cols.max(2) as f64, rows.max(2) as f64];
+    let fit = |samples: &[LevelSample]| LevelSurface::fit(samples, [0.0, 0.0], extent);
+    let (dot, gap) = (fit(dots)?, fit(gaps)?);
+    let whole_contrast = mean_level(dots) - mean_level(gaps);
+    if whole_contrast.is_nan() || whole_contrast == 0.0 {
+        return None;
+    }
+    let sign = whole_contrast.signum();
+    let min_contrast = MIN_CONTRAST_FRACTION * whole_contrast.abs();
+    let levels = (0..rows * cols)
+        .map(|k| {
+            let v = thumb.values[k]? as f64;
+            let (x, y) = ((k % cols) as f64, (k / cols) as f64);
+            let (dot, gap) = (dot.at(x, y), gap.at(x, y));
+            Some((v - gap) / (sign * ((dot - gap) * sign).max(min_contrast)))
+        })
+        .collect();
+    Some(levels)
+}
+
 /// Mean level of cell samples `[c, r, level]` (NaN for none).
 fn mean_level(samples: &[LevelSample]) -> f64 {
     samples.iter().map(|s| s[2]).sum::<f64>() / samples.len() as f64
@@ -360,32 +451,14 @@ struct CellReader {
 impl CellReader {
     /// `None` when the hypothesis predicts no seen cell set, or none unset.
     fn new(thumb: &Thumbnail, templates: &[Template], h: &Hypothesis) -> Option<Self> {
-        let [cols, rows] = thumb.len;
+        let cols = thumb.len[0];
         let set = |i: [i64; 2]| predicts_set(templates, h, i);
         let (dots, gaps) = lattice_references(thumb, &set);
-        // Cell positions scaled from the thumbnail's extent (at least two cells).
-        let extent = [cols.max(2) as f64, rows.max(2) as f64];
-        let fit = |samples: &[LevelSample]| LevelSurface::fit(samples, [0.0, 0.0], extent);
         // Without isolated dots or open gaps (a bitmap of solid shapes): levels as they are.
-        let references = fit(&dots).zip(fit(&gaps));
-        let whole_contrast = match references {
-            Some(_) => mean_level(&dots) - mean_level(&gaps),
-            None => 1.0,
-        };
-        let min_contrast = MIN_CONTRAST_FRACTION * whole_contrast.abs();
-        let levels: Vec<Option<f64>> = (0..rows * cols)
-            .map(|k| {
-                let v = thumb.values[k]? as f64;
-                let (c, r) = (k % cols, k / cols);
-                let Some((dot, gap)) = references else {
-                    return Some(v);
-                };
-                let (dot, gap) = (dot.at(c as f64, r as f64), gap.at(c as f64, r as f64));
-                let contrast = whole_contrast.signum()
-                    * ((dot - gap) * whole_contrast.signum()).max(min_contrast);
-                Some((v - gap) / contrast)
-            })
-            .collect();
+        let flattened = flatten_levels(thumb, &dots, &gaps);
+        let references = flattened.is_some();
+        let levels =
+            flattened.unwrap_or_else(|| thumb.values.iter().map(|v| v.map(f64::from)).collect());
         let (mut s1, mut n1, mut s0, mut n0) = (0.0, 0usize, 0.0, 0usize);
         for (k, level) in levels.iter().enumerate() {
             if let Some(n) = level {
@@ -399,12 +472,12 @@ impl CellReader {
             }
         }
         let (m1, m0) = (s1 / n1 as f64, s0 / n0 as f64);
-        (n1 > 0 && n0 > 0 && whole_contrast != 0.0).then(|| CellReader {
+        (n1 > 0 && n0 > 0).then(|| CellReader {
             levels,
             cols,
             threshold: (m1 + m0) / 2.0,
             bright_set: m1 > m0,
-            flattened: references.is_some(),
+            flattened: references,
         })
     }
 
