@@ -118,16 +118,11 @@ pub enum RealCategory {
     Combined,
 }
 
-/// The suite's degradations that apply to a real image as it is (not clutter, dust or hair).
-const REAL_DEGRADATIONS: [Degradation; 7] = [
-    Degradation::Perspective,
-    Degradation::Blur,
-    Degradation::Noise,
-    Degradation::Jpeg,
-    Degradation::Illumination,
-    Degradation::LowContrast,
-    Degradation::ColourCast,
-];
+/// Whether a suite degradation applies to a real image as it is (clutter, dust and hair are
+/// the images' own).
+fn applies_to_real(d: Degradation) -> bool {
+    !matches!(d, Degradation::Clutter | Degradation::DustHair)
+}
 
 impl RealCategory {
     /// Every category, in table order.
@@ -177,8 +172,11 @@ impl RealCategory {
             RealCategory::Tone => (Vec::new(), true),
             RealCategory::Combined => {
                 // The tone curve counts as one of the 2–4.
-                let mut all: Vec<Option<Degradation>> =
-                    REAL_DEGRADATIONS.iter().copied().map(Some).collect();
+                let mut all: Vec<Option<Degradation>> = Degradation::ALL
+                    .into_iter()
+                    .filter(|&d| applies_to_real(d))
+                    .map(Some)
+                    .collect();
                 all.push(None);
                 let k = rng.random_range(2..=4);
                 let mut chosen = Vec::with_capacity(k);

@@ -268,7 +268,12 @@ impl Labelling {
             let mut unexplained = Vec::new();
             for c in regions {
                 let [a, b] = finders_at(regions, c);
-                if a.is_none() && b.is_none() {
+                // A region read only from its gap and ring did stand out as a centre: where a
+                // tone curve darkens a dark finder's blurred gap, that nesting is the true
+                // centre in a gap too narrow for a centre reading at every level, and its
+                // gap-and-ring reading a look-alike of the other polarity (`HPCodeImage_20um.png`
+                // at `v^1.81`). The rescue reads it at its own gap's and ring's levels.
+                if a.is_none() {
                     unexplained.extend(rescue::Unexplained::of(c));
                 }
                 finders.extend(a.into_iter().chain(b));

@@ -343,33 +343,32 @@ fn lattice_references(
     thumb: &Thumbnail,
     set: &impl Fn([i64; 2]) -> bool,
 ) -> (CellSamples, CellSamples) {
-    let [cols, rows] = thumb.len;
     let sides_unset = |i: [i64; 2]| {
         [[1, 0], [-1, 0], [0, 1], [0, -1]]
             .iter()
             .all(|d| !set([i[0] + d[0], i[1] + d[1]]))
     };
-    let (mut dots, mut gaps) = (Vec::new(), Vec::new());
-    for r in 0..rows {
-        for c in 0..cols {
-            let Some(v) = thumb.values[r * cols + c] else {
-                continue;
-            };
-            let i = thumb.cell(c as i64, r as i64);
-            match (i[0].rem_euclid(2), i[1].rem_euclid(2)) {
-                (0, 0) if set(i) && sides_unset(i) => dots.push([c as f64, r as f64, v as f64]),
-                (1, 1) if !set(i) && sides_unset(i) => gaps.push([c as f64, r as f64, v as f64]),
-                _ => {}
-            }
-        }
-    }
-    (dots, gaps)
+    lattice_samples(
+        thumb,
+        |i| set(i) && sides_unset(i),
+        |i| !set(i) && sides_unset(i),
+    )
 }
 
 /// The seen cells of `thumb` on the lattice's dot positions and gap centres, whatever the
 /// bitmap: mostly dots and open gaps, the rest (missing dots, a frame's or glyph's cells) few
 /// enough for [`LevelSurface::fit`] to leave out as outliers.
 fn lattice_cells(thumb: &Thumbnail) -> (CellSamples, CellSamples) {
+    lattice_samples(thumb, |_| true, |_| true)
+}
+
+/// The seen cells of `thumb` at dot positions (both lattice indices even) that `dot` keeps and
+/// at gap centres (both odd) that `gap` keeps.
+fn lattice_samples(
+    thumb: &Thumbnail,
+    dot: impl Fn([i64; 2]) -> bool,
+    gap: impl Fn([i64; 2]) -> bool,
+) -> (CellSamples, CellSamples) {
     let [cols, rows] = thumb.len;
     let (mut dots, mut gaps) = (Vec::new(), Vec::new());
     for r in 0..rows {
@@ -379,8 +378,8 @@ fn lattice_cells(thumb: &Thumbnail) -> (CellSamples, CellSamples) {
             };
             let i = thumb.cell(c as i64, r as i64);
             match (i[0].rem_euclid(2), i[1].rem_euclid(2)) {
-                (0, 0) => dots.push([c as f64, r as f64, v as f64]),
-                (1, 1) => gaps.push([c as f64, r as f64, v as f64]),
+                (0, 0) if dot(i) => dots.push([c as f64, r as f64, v as f64]),
+                (1, 1) if gap(i) => gaps.push([c as f64, r as f64, v as f64]),
                 _ => {}
             }
         }
