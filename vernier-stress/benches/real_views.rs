@@ -276,7 +276,7 @@ fn run_scene(
     seed: u64,
     detectors: &mut BTreeMap<usize, Detector>,
 ) -> (RealResult, Option<RealScene>) {
-    let scene = match generate(real, image, category, seed) {
+    let scene = match generate(real, category, seed) {
         Ok(s) => s,
         Err(e) => {
             let result = RealResult {

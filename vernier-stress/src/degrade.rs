@@ -49,6 +49,21 @@ impl Degradation {
         Degradation::Clutter,
         Degradation::DustHair,
     ];
+
+    /// Lower-case name (`perspective`, `blur`, …, `dust_hair`): a stress category's.
+    pub fn name(self) -> &'static str {
+        match self {
+            Degradation::Perspective => "perspective",
+            Degradation::Blur => "blur",
+            Degradation::Noise => "noise",
+            Degradation::Jpeg => "jpeg",
+            Degradation::Illumination => "illumination",
+            Degradation::LowContrast => "low_contrast",
+            Degradation::ColourCast => "colour_cast",
+            Degradation::Clutter => "clutter",
+            Degradation::DustHair => "dust_hair",
+        }
+    }
 }
 
 /// Tilt of the marker plane.
@@ -118,7 +133,8 @@ pub struct Degradations {
     pub bits: u32,
 }
 
-fn log_uniform(rng: &mut SmallRng, lo: f64, hi: f64) -> f64 {
+/// A value drawn log-uniformly from `lo..hi` (both positive).
+pub(crate) fn log_uniform(rng: &mut SmallRng, lo: f64, hi: f64) -> f64 {
     (rng.random_range(lo.ln()..hi.ln())).exp()
 }
 

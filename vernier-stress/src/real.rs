@@ -22,7 +22,7 @@
 //! optics, σ ≈ 0.5–1 px; renders cap the total at a quarter).
 
 use crate::data::data_dir;
-use crate::degrade::{apply_illumination, finish, Degradation, Degradations};
+use crate::degrade::{apply_illumination, finish, log_uniform, Degradation, Degradations};
 use crate::error::{Result, StressError};
 use crate::geometry::Homography;
 use crate::raster::{gaussian_blur, warp_into, Plane};
@@ -67,9 +67,9 @@ const fn hp(file: &'static str, w: usize, ids: &'static [u64], required: usize) 
     }
 }
 
-/// Every HP code and stamp image of the data folder with several views of no marker of its
-/// own (`code18_90.jpg` and `code18_180.jpg` are turned copies of `code18.jpg`, the sequence
-/// `Image96`–`105` is represented by two of its frames).
+/// The HP code and stamp images of the data folder, each physical scene once: `code18_90.jpg`
+/// and `code18_180.jpg` (turned copies of `code18.jpg`) are left out, and the sequence
+/// `Image96`–`105` is represented by two of its frames.
 pub const REAL_CASES: &[RealCase] = &[
     hp("hpcode/HPCodeImage_20um.png", 33, &[0, 1], 2),
     hp("hpcode/Image96.png", 33, &[0, 1], 2),
@@ -143,17 +143,7 @@ impl RealCategory {
     pub fn name(self) -> &'static str {
         match self {
             RealCategory::Turned => "turned",
-            RealCategory::Only(d) => match d {
-                Degradation::Perspective => "perspective",
-                Degradation::Blur => "blur",
-                Degradation::Noise => "noise",
-                Degradation::Jpeg => "jpeg",
-                Degradation::Illumination => "illumination",
-                Degradation::LowContrast => "low_contrast",
-                Degradation::ColourCast => "colour_cast",
-                Degradation::Clutter => "clutter",
-                Degradation::DustHair => "dust_hair",
-            },
+            RealCategory::Only(d) => d.name(),
             RealCategory::Tone => "tone",
             RealCategory::Combined => "combined",
         }
@@ -265,17 +255,10 @@ impl RealImage {
             clean,
         })
     }
-
-    /// Markers the scenes of this image must give.
-    pub fn marker_count(&self) -> usize {
-        self.clean.len()
-    }
 }
 
 /// One degraded view of a real image.
 pub struct RealScene {
-    /// Index of the image in the list it was generated from.
-    pub image: usize,
     /// Its category.
     pub category: RealCategory,
     /// The seed that reproduces it.
@@ -293,18 +276,13 @@ pub struct RealScene {
 /// Salt of a real scene's random stream (independent of the render suite's).
 const SALT: u64 = 0x7265_616c_2d76_3031;
 
-/// Generates the view `seed` of `real` (index `index`) in `category`.
-pub fn generate(
-    real: &RealImage,
-    index: usize,
-    category: RealCategory,
-    seed: u64,
-) -> Result<RealScene> {
+/// Generates the view `seed` of `real` in `category`.
+pub fn generate(real: &RealImage, category: RealCategory, seed: u64) -> Result<RealScene> {
     let mut rng = SmallRng::seed_from_u64(seed ^ SALT);
     let (kinds, tone) = category.draw(&mut rng);
     let d = Degradations::draw(&kinds, &mut rng);
     let angle = rng.random_range(0.0..TAU);
-    let magnification = (rng.random_range(0.7f64.ln()..0.0)).exp();
+    let magnification = log_uniform(&mut rng, 0.7, 1.0);
     let (homography, size) = view_homography(&real.plane, angle, magnification, &d)?;
     let mut plane = warp_into(&real.plane, &homography, 2, real.fill, size);
     let mut parts = vec![format!(
@@ -332,7 +310,7 @@ pub fn generate(
         parts.push(format!("markers' contrast {c:.2} from {offset:.2}"));
     }
     if tone {
-        let gamma = (rng.random_range(0.4f64.ln()..2.5f64.ln())).exp();
+        let gamma = log_uniform(&mut rng, 0.4, 2.5);
         for v in plane.data.iter_mut() {
             *v = v.clamp(0.0, 1.0).powf(gamma as f32);
         }
@@ -366,7 +344,6 @@ pub fn generate(
         })
         .collect();
     Ok(RealScene {
-        image: index,
         category,
         seed,
         grey,

@@ -12,7 +12,7 @@
 
 use crate::clutter::Clutter;
 use crate::data::StampSet;
-use crate::degrade::{apply_illumination, finish, Degradation, Degradations};
+use crate::degrade::{apply_illumination, finish, log_uniform, Degradation, Degradations};
 use crate::error::{Result, StressError};
 use crate::geometry::{rotate, Homography, OrientedRect};
 use crate::markers::{Expectation, Family, MarkerKind, Placed, TruthMarker, PERIOD, STAMP_CELLS};
@@ -66,17 +66,7 @@ impl Category {
         match self {
             Category::Clean => "clean",
             Category::Combined => "combined",
-            Category::Only(d) => match d {
-                Degradation::Perspective => "perspective",
-                Degradation::Blur => "blur",
-                Degradation::Noise => "noise",
-                Degradation::Jpeg => "jpeg",
-                Degradation::Illumination => "illumination",
-                Degradation::LowContrast => "low_contrast",
-                Degradation::ColourCast => "colour_cast",
-                Degradation::Clutter => "clutter",
-                Degradation::DustHair => "dust_hair",
-            },
+            Category::Only(d) => d.name(),
         }
     }
 
@@ -168,10 +158,6 @@ impl Scene {
             },
         }
     }
-}
-
-fn log_uniform(rng: &mut SmallRng, lo: f64, hi: f64) -> f64 {
-    rng.random_range(lo.ln()..hi.ln()).exp()
 }
 
 /// Range of image periods (pixels per physical period) of a family.

@@ -40,7 +40,7 @@ fn views_that_failed_give_their_markers() {
             .into_iter()
             .find(|s| s.2 == seed)
             .unwrap_or_else(|| panic!("seed {seed} is not a view of {file}"));
-        let scene = generate(&real, 0, category, seed).unwrap_or_else(|e| panic!("{e}"));
+        let scene = generate(&real, category, seed).unwrap_or_else(|e| panic!("{e}"));
         let mut detector = Detector::new(real.settings.to_config().unwrap()).unwrap();
         let detections = detector.detect(&scene.grey).map_err(|e| e.to_string());
         let result = evaluate(&real, &scene, detections.as_deref().map_err(Clone::clone));
@@ -72,7 +72,7 @@ fn a_small_sample_of_real_views_meets_the_targets() {
     for (i, real) in images.iter().enumerate() {
         let mut detector = Detector::new(real.settings.to_config().unwrap()).unwrap();
         for (_, category, seed) in real_seeds(BASE_SEED, &cases[i..=i], 1) {
-            let scene = generate(real, i, category, seed).unwrap_or_else(|e| panic!("{e}"));
+            let scene = generate(real, category, seed).unwrap_or_else(|e| panic!("{e}"));
             let detections = detector.detect(&scene.grey).map_err(|e| e.to_string());
             let r = evaluate(real, &scene, detections.as_deref().map_err(Clone::clone));
             if r.found < r.expected || r.wrong > 0 || r.false_markers > 0 {

@@ -162,20 +162,22 @@ pub(crate) fn best_match(
     templates: &[Template],
     range: &SearchRange,
 ) -> Option<Match> {
-    let raw: Vec<Option<f64>> = thumb.values.iter().map(|v| v.map(f64::from)).collect();
     let (dots, gaps) = lattice_cells(thumb);
-    let rankings: Vec<Vec<(Hypothesis, f64)>> = [Some(raw), flatten_levels(thumb, &dots, &gaps)]
-        .into_iter()
-        .flatten()
-        .filter_map(|levels| rank_hypotheses(thumb, templates, range, &levels))
-        .collect();
+    let rankings: Vec<Vec<(Hypothesis, f64)>> =
+        [Some(raw_levels(thumb)), flatten_levels(thumb, &dots, &gaps)]
+            .into_iter()
+            .flatten()
+            .filter_map(|levels| rank_hypotheses(thumb, templates, range, &levels))
+            .collect();
     // Each ranking's leader, its cells read on levels flattened with its own references (an
     // illumination gradient over a stamp of low contrast lowers the correlation of raw
     // levels: 0.43 for stamp G of `stampPatternImage_15um.jpg` at contrast × 0.3 under a gain
-    // from 0.3 to 1). Raw first: a tie keeps it.
+    // from 0.3 to 1). Raw first: a tie keeps it, and a leader that raw levels led too is not
+    // read again.
     let (chosen, reader, correlation) = rankings
         .iter()
         .enumerate()
+        .filter(|(k, ranked)| *k == 0 || ranked[0].0 != rankings[0][0].0)
         .map(|(k, ranked)| {
             let (leader, r) = ranked[0];
             let reader = CellReader::new(thumb, templates, &leader);
@@ -418,6 +420,11 @@ fn flatten_levels(
     Some(levels)
 }
 
+/// Each cell's level as it is, row-major like the thumbnail, `None` where unseen.
+fn raw_levels(thumb: &Thumbnail) -> Vec<Option<f64>> {
+    thumb.values.iter().map(|v| v.map(f64::from)).collect()
+}
+
 /// Mean level of cell samples `[c, r, level]` (NaN for none).
 fn mean_level(samples: &[LevelSample]) -> f64 {
     samples.iter().map(|s| s[2]).sum::<f64>() / samples.len() as f64
@@ -456,8 +463,7 @@ impl CellReader {
         // Without isolated dots or open gaps (a bitmap of solid shapes): levels as they are.
         let flattened = flatten_levels(thumb, &dots, &gaps);
         let references = flattened.is_some();
-        let levels =
-            flattened.unwrap_or_else(|| thumb.values.iter().map(|v| v.map(f64::from)).collect());
+        let levels = flattened.unwrap_or_else(|| raw_levels(thumb));
         let (mut s1, mut n1, mut s0, mut n0) = (0.0, 0usize, 0.0, 0usize);
         for (k, level) in levels.iter().enumerate() {
             if let Some(n) = level {
