@@ -1,5 +1,5 @@
 //! Views of the real images that the real-image bench (`cargo bench -p vernier-stress --bench
-//! real_views`, seed 1, 8 draws) found failing, regenerated from their seeds and detected with
+//! real_views`, 8 draws) found failing, regenerated from their seeds and detected with
 //! the settings a user types: each must now give every marker of its clean image, at its
 //! place, with its ID, and nothing else. A small fixed sample of views (one per image and
 //! category, 110) must meet the stress suite's targets: ≥ 99 % found, no wrong ID or
@@ -11,32 +11,37 @@
 use vernier::Detector;
 use vernier_stress::real::{evaluate, generate, real_seeds, RealImage, REAL_CASES};
 
-/// Base seed and draws of the bench run that found them.
+/// Base seed of the bench's default run (the sample below), and its draws per image and
+/// category.
 const BASE_SEED: u64 = 1;
 const DRAWS: usize = 8;
 
-/// `(file, seed)` of the views that failed, and why:
+/// `(file, base seed, seed)` of the views that failed, and why:
 /// * `stamp1.png`, 879: faint (contrast 0.15) under a gain falling to 0.43, read as its own
 ///   mirror image and dropped (the stamp matcher now also ranks on flattened levels);
 /// * `HPCodeImage_20um.png`, 68: tone curve γ 1.81, a finder's darkened gap read 1.34 times its
 ///   centre's side, too narrow for a centre reading (≥ 1.35), and that nesting's only reading,
 ///   a gap-and-ring look-alike of the other polarity, kept it from the blurred-finder rescue
-///   (which now reads every region that no reading made a centre).
-const FIXED: [(&str, u64); 2] = [
-    ("stamp/stamp1.png", 879),
-    ("hpcode/HPCodeImage_20um.png", 68),
+///   (which now reads every region that no reading made a centre);
+/// * `HPCodeImage_20um.png`, 841 of base seed 777: tone curve γ 1.70, two finders beside the
+///   chip's bright surround, whose local range it stretches: their gaps sat below every level
+///   (the finder search now also scans the outer levels 0.15 and 0.85).
+const FIXED: [(&str, u64, u64); 3] = [
+    ("stamp/stamp1.png", BASE_SEED, 879),
+    ("hpcode/HPCodeImage_20um.png", BASE_SEED, 68),
+    ("hpcode/HPCodeImage_20um.png", 777, 841),
 ];
 
 #[test]
 fn views_that_failed_give_their_markers() {
     let mut failures = Vec::new();
-    for (file, seed) in FIXED {
+    for (file, base_seed, seed) in FIXED {
         let index = REAL_CASES
             .iter()
             .position(|c| c.file == file)
             .unwrap_or_else(|| panic!("{file} is not a real case"));
         let real = RealImage::load(REAL_CASES[index]).unwrap_or_else(|e| panic!("{e}"));
-        let (_, category, _) = real_seeds(BASE_SEED, &[index], DRAWS)
+        let (_, category, _) = real_seeds(base_seed, &[index], DRAWS)
             .into_iter()
             .find(|s| s.2 == seed)
             .unwrap_or_else(|| panic!("seed {seed} is not a view of {file}"));

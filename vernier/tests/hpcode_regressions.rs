@@ -238,3 +238,43 @@ fn every_quarter_turn_of_a_jpeg_marker_is_found() {
         view = common::jpeg(&view.rotated_90_clockwise(), 90);
     }
 }
+
+/// A marker on a grey part beside something brighter: in `HPCodeImage_20um.png` the bright
+/// surround of the chip comes within a few pixels of two finders. Dark ink (0.02) on a grey
+/// part (0.25) whose edge runs 3 px from the marker, a surround 2.4 times brighter (0.6), and
+/// a camera tone curve `v^1.7` (the real-image bench's view 841 of seed 777): where a finder's
+/// neighbourhood holds the surround, its local range spans it, and the finder's grey gap sits
+/// at a fifth of that range, below the levels that open a gap on a plain background (failed
+/// before the outer threshold levels, checked).
+#[test]
+fn finders_beside_a_brighter_area_under_a_tone_curve_are_found() {
+    let markers = [Marker {
+        id: 1,
+        at: Vector2::new(200.0, 190.0),
+        alpha: 0.09,
+        period_px: 5.9,
+        tilt: (0.0, 0.0),
+    }];
+    let (mut image, origins) = render((400, 380), 33, &markers, true);
+    // The render's levels (ink 0.1, background 0.85) to ink 0.02 on a part at 0.25.
+    for v in image.pixels_mut() {
+        *v = 0.02 + (*v - 0.1) / (0.85 - 0.1) * 0.23;
+    }
+    // The marker's extent (its ink), then the part's edge 3 px beyond its top and left sides,
+    // soft over 1 px as the optics give it.
+    let w = image.width();
+    let ink = |axis: fn(usize, usize) -> usize| {
+        let pixels = image.pixels().iter().enumerate();
+        let inked = pixels.filter(|(_, &v)| v < 0.1).map(|(i, _)| axis(i, w));
+        inked.min().unwrap() as f64
+    };
+    let (left, top) = (ink(|i, w| i % w), ink(|i, w| i / w));
+    for (i, v) in image.pixels_mut().iter_mut().enumerate() {
+        let (c, r) = ((i % w) as f64, (i / w) as f64);
+        let outside = ((left - 3.0 - c).max(top - 3.0 - r) + 0.5).clamp(0.0, 1.0) as f32;
+        *v += outside * (0.6 - *v);
+        *v = v.max(0.0).powf(1.7);
+    }
+    let found = common::hp_detector(20.0, 33).detect(&image).unwrap();
+    assert_found(&found, &markers, &origins, 0.1);
+}

@@ -33,9 +33,21 @@ const PARALLEL_MIN_PIXELS: usize = 1 << 18;
 /// Closest accepted distance between two finders of the same size, modules (see
 /// [`crowded`]; two markers touching edge to edge have finders 7 modules apart).
 const MIN_SPACING: f64 = 10.0;
-/// Threshold levels scanned, fractions of the local range: the mid-range, and two levels
-/// that keep a blurred one-module gap open in bright (0.7) and dark (0.3) finders.
-const LEVELS: [f32; 3] = [0.5, 0.7, 0.3];
+/// Threshold levels scanned, fractions of the local range: the mid-range, two levels that
+/// keep a blurred one-module gap open in bright (0.7) and dark (0.3) finders, and two for
+/// finders beside a third material: where a neighbourhood also holds something much brighter
+/// (darker) than the marker's own background (the bright edge of the part, a glint, a pad),
+/// the range stretches, and a dark finder's gap, at the marker's background level, may sit
+/// at a fifth of it (`HPCodeImage_20um.png` next to its chip's edge under a tone curve
+/// `v^1.7`) and a bright finder's at four fifths.
+const LEVELS: [f32; 5] = [0.5, 0.7, 0.3, 0.85, 0.15];
+/// The middle levels, first in [`LEVELS`]: their regions alone seed the blurred-finder rescue
+/// and the finer pyramid level's windows. The outer two lie close to one material's own
+/// level, where noise forms compact specks, which would crowd a true rescue candidate
+/// ([`rescue::candidates`]) and open windows all over a noisy background (they doubled the
+/// pixels labelled in a 5 MP frame). A small finder needs no window of its own: the dots of
+/// its marker open windows around it at the middle levels.
+const MIDDLE_LEVELS: usize = 3;
 /// Accepted `√(filled gap / filled centre)` (nominal 5/3: blur and threshold move it).
 const GAP_RATIO: (f64, f64) = (1.35, 2.3);
 /// Accepted `√(filled ring / filled gap)` when the centre merged with the gap (nominal 7/5;
@@ -261,7 +273,7 @@ impl Labelling {
         let map = &self.thresholds;
         let want_small = small.is_some();
         let (ox, oy) = (origin.0 as u32, origin.1 as u32);
-        let scan = |(labels, level): (&mut Regions, f32)| -> LevelScan {
+        let scan = |(index, (labels, level)): (usize, (&mut Regions, f32))| -> LevelScan {
             labels.label(image, map, level);
             let regions = &labels.regions;
             let mut finders = Vec::new();
@@ -273,14 +285,14 @@ impl Labelling {
                 // centre in a gap too narrow for a centre reading at every level, and its
                 // gap-and-ring reading a look-alike of the other polarity (`HPCodeImage_20um.png`
                 // at `v^1.81`). The rescue reads it at its own gap's and ring's levels.
-                if a.is_none() {
+                if a.is_none() && index < MIDDLE_LEVELS {
                     unexplained.extend(rescue::Unexplained::of(c));
                 }
                 finders.extend(a.into_iter().chain(b));
             }
             let small = regions
                 .iter()
-                .filter(|r| want_small && might_be_small_centre(r))
+                .filter(|r| want_small && index < MIDDLE_LEVELS && might_be_small_centre(r))
                 .map(|r| {
                     [
                         r.bbox[0] + ox,
@@ -292,7 +304,7 @@ impl Labelling {
                 .collect();
             (finders, small, unexplained)
         };
-        let jobs = self.regions.iter_mut().zip(LEVELS);
+        let jobs = self.regions.iter_mut().zip(LEVELS).enumerate();
         let results: Vec<LevelScan> = if image.width() * image.height() >= PARALLEL_MIN_PIXELS {
             std::thread::scope(|s| {
                 let handles: Vec<_> = jobs.map(|job| s.spawn(move || scan(job))).collect();
@@ -549,6 +561,7 @@ fn crowded(f: &Finder, all: &[Finder]) -> bool {
             && g.polarity == f.polarity
             && (g.module_px / f.module_px - 1.0).abs() < 0.3
             && (g.center - f.center).norm() < MIN_SPACING * f.module_px
+            && (g.center - f.center).norm() >= f.module_px.min(g.module_px)
     })
 }
 

@@ -1,7 +1,7 @@
 //! Blurred-finder rescue (docs/design.md#hp-finders): finders whose gap no level of the local
 //! range opens.
 //!
-//! The three levels of the local range ([`super::LEVELS`]) are fractions of a range that a
+//! The middle levels of the local range ([`super::LEVELS`]) are fractions of a range that a
 //! finder's centre and its surround set. Blur of about half a module lifts a grey gap (printed
 //! finders, `code31.jpg`) above the lower levels while the corners of the one-module ring sink
 //! below the upper ones, so no level opens the gap and closes the ring, although one between
@@ -75,7 +75,7 @@ impl Unexplained {
     }
 }
 
-/// The unexplained regions worth a rescue: one per place, colour and size (the three levels
+/// The unexplained regions worth a rescue: one per place, colour and size (the middle levels
 /// see the same centre), none where a finder of that colour and size was found, and none
 /// crowded by regions like it, as the dots of a dot grid are (a finder's centre has none
 /// nearer than [`MIN_SPACING`] modules, as in [`super::crowded`]).
