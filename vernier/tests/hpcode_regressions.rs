@@ -255,11 +255,9 @@ fn finders_beside_a_brighter_area_under_a_tone_curve_are_found() {
         period_px: 5.9,
         tilt: (0.0, 0.0),
     }];
-    let (mut image, origins) = render((400, 380), 33, &markers, true);
+    let (render, origins) = render((400, 380), 33, &markers, true);
     // The render's levels (ink 0.1, background 0.85) to ink 0.02 on a part at 0.25.
-    for v in image.pixels_mut() {
-        *v = 0.02 + (*v - 0.1) / (0.85 - 0.1) * 0.23;
-    }
+    let mut image = common::map_levels(&render, |v| 0.02 + (v - 0.1) / (0.85 - 0.1) * 0.23);
     // The marker's extent (its ink), then the part's edge 3 px beyond its top and left sides,
     // soft over 1 px as the optics give it.
     let w = image.width();
@@ -273,8 +271,8 @@ fn finders_beside_a_brighter_area_under_a_tone_curve_are_found() {
         let (c, r) = ((i % w) as f64, (i / w) as f64);
         let outside = ((left - 3.0 - c).max(top - 3.0 - r) + 0.5).clamp(0.0, 1.0) as f32;
         *v += outside * (0.6 - *v);
-        *v = v.max(0.0).powf(1.7);
     }
+    let image = common::map_levels(&image, |v| v.max(0.0).powf(1.7));
     let found = common::hp_detector(20.0, 33).detect(&image).unwrap();
     assert_found(&found, &markers, &origins, 0.1);
 }

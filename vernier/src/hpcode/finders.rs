@@ -554,14 +554,17 @@ fn dedup(mut found: Vec<Finder>) -> Vec<Finder> {
 /// hollow-looking dot of a dot grid), not a finder.
 fn crowded(f: &Finder, all: &[Finder]) -> bool {
     all.iter().any(|g| {
+        // A concentric reading (nearer than a module) is the same square read at another
+        // level, not a neighbour.
+        let distance = (g.center - f.center).norm();
         // A finder read through its centre is judged among those alone, as if the readings
         // through gap and ring did not exist.
         g != f
             && (f.centre_hidden || !g.centre_hidden)
             && g.polarity == f.polarity
             && (g.module_px / f.module_px - 1.0).abs() < 0.3
-            && (g.center - f.center).norm() < MIN_SPACING * f.module_px
-            && (g.center - f.center).norm() >= f.module_px.min(g.module_px)
+            && distance < MIN_SPACING * f.module_px
+            && distance >= f.module_px.min(g.module_px)
     })
 }
 
