@@ -51,9 +51,15 @@ use crate::phase::{
 };
 use crate::pose::Pose;
 use matching::{best_match, Match, SearchRange, Template};
-use nalgebra::Vector2;
+use nalgebra::{Matrix3, Vector2};
 use quads::{Candidate, QuadFinder};
 use std::f64::consts::{PI, TAU};
+
+/// Largest bend of a frame outline ([`Quad::perspective_bend`]), in thumbnail cells, below
+/// which the affine view is not read as well: the outline's view and the affine one then
+/// sample every cell within its middle (each cell is read over ±1/6 of a cell) and give the
+/// same reading.
+const MAX_UNTESTED_BEND: f64 = 0.1;
 
 /// How markers are searched for.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -742,40 +748,46 @@ impl StampDetector {
             .map(|t| t.half[0].max(t.half[1]))
             .max()
             .unwrap_or(0);
-        let shift = 2 * self.params.max_center_offset as i64;
-        let half = reach + shift + 2;
+        let half = reach + self.origin_reach() + 2;
         let origin = Vector2::new(center.0 as f64, center.1 as f64);
-        let len = (2 * half + 1) as usize;
-        // Perspective: the frame's outline says how the affine view of the planes bends.
-        let warp = frame.as_ref().and_then(|q| q.perspective_warp());
-        let Some(mut thumb) = thumbnail::sample(
-            image,
-            origin,
-            &planes,
-            [-half, -half],
-            [len, len],
-            warp.as_ref(),
-        ) else {
-            return Ok(None);
+        let thumb_at = |warp: Option<&Matrix3<f64>>| {
+            self.matched_thumbnail(image, origin, &planes, half, polarity, warp)
         };
-        if polarity == Polarity::DarkDots {
-            // Dots (set cells) darker: the matching wants them high.
-            for v in thumb.values.iter_mut().flatten() {
-                *v = -*v;
+        // Perspective: the frame's outline says how the affine view of the planes bends,
+        // unless an occluder bent the outline (a hair or a dust speck stuck to the frame).
+        // Where the bend moves cells and the outline's view reads nothing acceptable, the
+        // affine view is read too, and the better correlated reading stands.
+        let cell_px = 0.5 * analysis.mean_pixel_period();
+        let warp = frame
+            .as_ref()
+            .and_then(|q| Some((q.perspective_warp()?, q.perspective_bend()?)));
+        let found = match warp {
+            None => thumb_at(None),
+            Some((warp, bend)) => {
+                let warped = thumb_at(Some(&warp));
+                let unread = warped
+                    .as_ref()
+                    .is_none_or(|w| self.reading_rejected(w).is_some());
+                if unread && bend > MAX_UNTESTED_BEND * cell_px {
+                    match (warped, thumb_at(None)) {
+                        (Some(w), Some(a)) => {
+                            Some(if a.correlation > w.correlation { a } else { w })
+                        }
+                        (w, a) => w.or(a),
+                    }
+                } else {
+                    warped
+                }
             }
-        }
-        let range = SearchRange {
-            origin: [[-shift, shift], [-shift, shift]],
-            mirrored_allowed: self.params.allow_mirrored,
-            min_overlap: 0.5,
         };
-        let Some(found) = best_match(&thumb, &self.templates, &range) else {
+        let Some(found) = found else {
             return Ok(None);
         };
         if let Some(why) = self.reading_rejected(&found) {
             log::debug!("stamp at {center:?}: {why}");
             return Ok(None);
         }
+        let mut frame = frame;
         if let Some(q) = &frame {
             if !self.frame_fits(q, &planes, self.shapes[found.bitmap].0) {
                 log::debug!(
@@ -789,14 +801,25 @@ impl StampDetector {
             };
             // Centres, not corners: perspective bends the corners away from the affine view of
             // the phase planes (0.6 period on stamp1.png), not the centre.
-            let offset = (q.center() - predicted.center()).norm() / analysis.mean_pixel_period();
+            let period = analysis.mean_pixel_period();
+            let offset = (q.center() - predicted.center()).norm() / period;
             if offset > self.params.max_frame_offset {
+                // The outline found may be bent by an occluder stuck to the frame: the image
+                // must then show the frame where the pose puts it, not a period away.
+                // (A frame is drawn in the dots' material.)
+                if !predicted.edges_confirmed(image, polarity, period) {
+                    log::debug!(
+                        "stamp at {center:?}: the pose puts the frame {offset:.2} periods from \
+                         the one found (max_frame_offset {}) and the image shows no frame there",
+                        self.params.max_frame_offset
+                    );
+                    return Ok(None);
+                }
                 log::debug!(
-                    "stamp at {center:?}: the pose puts the frame {offset:.2} periods from the \
-                     one found (max_frame_offset {})",
-                    self.params.max_frame_offset
+                    "stamp at {center:?}: the outline found is {offset:.2} periods off, the \
+                     frame is where the pose puts it (outline bent by an occluder)"
                 );
-                return Ok(None);
+                frame = Some(predicted);
             }
             log::debug!(
                 "stamp at {center:?}: bitmap {} (correlation {:.3}, confidence {:.3}, frame \
@@ -816,6 +839,41 @@ impl StampDetector {
             analysis,
             polarity,
         }))
+    }
+
+    /// How far from the window centre the bitmap's central dot is searched for, thumbnail
+    /// cells along each axis ([`StampParams::max_center_offset`] periods).
+    fn origin_reach(&self) -> i64 {
+        2 * self.params.max_center_offset as i64
+    }
+
+    /// The best reading of the thumbnail of `2·half + 1` cells a side sampled about the
+    /// plane origin `origin` (image pixels), dots of `polarity`, every sample moved by `warp`
+    /// (see [`thumbnail::sample`]); `None` when it leaves the image or nothing matches.
+    fn matched_thumbnail(
+        &self,
+        image: &GreyImage,
+        origin: Vector2<f64>,
+        planes: &[PhasePlane; 2],
+        half: i64,
+        polarity: Polarity,
+        warp: Option<&Matrix3<f64>>,
+    ) -> Option<Match> {
+        let len = (2 * half + 1) as usize;
+        let mut thumb = thumbnail::sample(image, origin, planes, [-half, -half], [len, len], warp)?;
+        if polarity == Polarity::DarkDots {
+            // Dots (set cells) darker: the matching wants them high.
+            for v in thumb.values.iter_mut().flatten() {
+                *v = -*v;
+            }
+        }
+        let shift = self.origin_reach();
+        let range = SearchRange {
+            origin: [[-shift, shift], [-shift, shift]],
+            mirrored_allowed: self.params.allow_mirrored,
+            min_overlap: 0.5,
+        };
+        best_match(&thumb, &self.templates, &range)
     }
 
     /// The detection of a marker read in its window, whole-field fit included.

@@ -194,13 +194,78 @@ impl Quad {
         (fine.corner_distance(self) <= 6.0 * search + 2.0).then_some(fine)
     }
 
+    /// How far perspective bends this outline: the largest distance from a corner to where
+    /// the affine view at its centre ([`Quad::perspective_warp`]) puts it, pixels; `None` for
+    /// a degenerate outline.
+    pub fn perspective_bend(&self) -> Option<f64> {
+        let unwarp = self.perspective_warp()?.try_inverse()?;
+        self.corners
+            .iter()
+            .map(|c| {
+                let q = unwarp * Vector3::new(c.x, c.y, 1.0);
+                (q.z.abs() > 1e-12).then(|| (Vector2::new(q.x / q.z, q.y / q.z) - c).norm())
+            })
+            .try_fold(0.0f64, |most, d| Some(most.max(d?)))
+    }
+
+    /// Whether `image` shows a frame of `polarity` (bright: brighter than what is outside)
+    /// all along this outline. Per side, the median over its profiles of the steepest
+    /// frame-to-outside step within a quarter of a grid period (`period_px`, pixels) of the
+    /// side: on every side it must be at least twice the same median a period further out
+    /// (where only background lies) and at least half the median of the four sides. An
+    /// outline a grid period off the frame (a pose matched at the wrong shift) leaves at least
+    /// two sides in the background or inside the solid frame, with no step, while the others
+    /// lie on the frame's edges; an occluder across part of a side (a hair, a dust speck)
+    /// spoils a minority of its profiles, which the medians ignore.
+    pub(crate) fn edges_confirmed(
+        &self,
+        image: &GreyImage,
+        polarity: Polarity,
+        period_px: f64,
+    ) -> bool {
+        let center = self.center();
+        let band = 0.25 * period_px;
+        let sign = polarity_sign(polarity);
+        // Per side: the medians on the side and a period out.
+        let mut sides = [[0.0f64; 2]; 4];
+        let mut values = Vec::new();
+        for (k, medians) in sides.iter_mut().enumerate() {
+            let Some(side) = SideProfiles::new(self.corners[k], self.corners[(k + 1) % 4], center)
+            else {
+                return false;
+            };
+            let mut heights: [Vec<f64>; 2] = Default::default();
+            for j in 0..side.count() {
+                let base = side.profile(j).0;
+                let steps = [0.0, period_px].map(|shift| {
+                    steepest_step(image, (base, side.normal), sign, (shift, band), &mut values)
+                });
+                // Profiles that leave the image are not judged (a profile that never steps
+                // down counts as a zero step).
+                let far = base + side.normal * (period_px + band + 2.0);
+                if image.bilinear(far.x, far.y).is_none() {
+                    continue;
+                }
+                for (h, step) in heights.iter_mut().zip(steps) {
+                    h.push(step.map_or(0.0, |(_, height)| height as f64));
+                }
+            }
+            if 2 * heights[0].len() < side.count() {
+                return false;
+            }
+            *medians = heights.map(|mut h| median(&mut h).unwrap_or(0.0));
+        }
+        let mut on_sides: Vec<f64> = sides.iter().map(|m| m[0]).collect();
+        let typical = median(&mut on_sides).unwrap_or(0.0);
+        sides
+            .iter()
+            .all(|&[at, out]| at > 0.0 && at >= 2.0 * out && 2.0 * at >= typical)
+    }
+
     /// One pass of [`Quad::refined`] with a band of ±`search` pixels.
     fn refit(&self, image: &GreyImage, polarity: Polarity, search: f64) -> Option<Quad> {
         let center = self.center();
-        let sign = match polarity {
-            Polarity::BrightDots => 1.0f32,
-            Polarity::DarkDots => -1.0,
-        };
+        let sign = polarity_sign(polarity);
         let mut lines = [(Vector2::zeros(), Vector2::zeros()); 4];
         for (k, line) in lines.iter_mut().enumerate() {
             let a = self.corners[k];
@@ -208,6 +273,15 @@ impl Quad {
             *line = refine_side(image, a, b, center, sign, search)?;
         }
         corners_of(&lines).map(|corners| Quad { corners })
+    }
+}
+
+/// +1 for a frame brighter than its surroundings, −1 for a darker one: profiles multiplied by
+/// it step down from frame to outside.
+fn polarity_sign(polarity: Polarity) -> f32 {
+    match polarity {
+        Polarity::BrightDots => 1.0,
+        Polarity::DarkDots => -1.0,
     }
 }
 
@@ -246,15 +320,82 @@ fn refine_side(
     sign: f32,
     search: f64,
 ) -> Option<(Vector2<f64>, Vector2<f64>)> {
-    let len = (b - a).norm();
-    if len < 4.0 {
-        return None;
+    let side = SideProfiles::new(a, b, center)?;
+    let count = side.count();
+    let mut values = Vec::new();
+    // (position along the side from its middle, edge offset along n), pixels.
+    let points: Vec<(f64, f64)> = (0..count)
+        .filter_map(|j| {
+            let (base, along) = side.profile(j);
+            steepest_step(image, (base, side.normal), sign, (0.0, search), &mut values)
+                .map(|(offset, _)| (along, offset))
+        })
+        .collect();
+    let (offset, slope) = robust_line(&points, count)?;
+    let dir = (side.direction + side.normal * slope).normalize();
+    Some(((a + b) / 2.0 + side.normal * offset, dir))
+}
+
+/// Profiles across one side of an outline, over the middle 70 % of its length (clear of
+/// rounded corners), one every ~8 pixels (8 to 32 of them).
+struct SideProfiles {
+    a: Vector2<f64>,
+    b: Vector2<f64>,
+    /// Unit direction from `a` to `b`.
+    direction: Vector2<f64>,
+    /// Unit normal pointing away from the outline's centre (outwards).
+    normal: Vector2<f64>,
+}
+
+impl SideProfiles {
+    /// The side from `a` to `b` of an outline centred on `center`; `None` when shorter than
+    /// 4 pixels.
+    fn new(a: Vector2<f64>, b: Vector2<f64>, center: Vector2<f64>) -> Option<Self> {
+        let len = (b - a).norm();
+        if len < 4.0 {
+            return None;
+        }
+        let direction = (b - a) / len;
+        let mut normal = Vector2::new(direction.y, -direction.x);
+        if normal.dot(&((a + b) / 2.0 - center)) < 0.0 {
+            normal = -normal;
+        }
+        Some(SideProfiles {
+            a,
+            b,
+            direction,
+            normal,
+        })
     }
-    let u = (b - a) / len;
-    let mut n = Vector2::new(u.y, -u.x);
-    if n.dot(&((a + b) / 2.0 - center)) < 0.0 {
-        n = -n;
+
+    /// Number of profiles.
+    fn count(&self) -> usize {
+        (((self.b - self.a).norm() / 8.0).round() as usize).clamp(8, 32)
     }
+
+    /// Profile `j`'s point on the side and its position along the side from the middle,
+    /// pixels.
+    fn profile(&self, j: usize) -> (Vector2<f64>, f64) {
+        let t = 0.15 + 0.7 * (j as f64 + 0.5) / self.count() as f64;
+        (
+            self.a + (self.b - self.a) * t,
+            (t - 0.5) * (self.b - self.a).norm(),
+        )
+    }
+}
+
+/// The steepest step from frame (inside, `−n`) to outside (`+n`) along the profile through
+/// `base` in direction `n`, within `search` pixels of `shift` pixels outwards: its sub-pixel
+/// offset along `n` (parabola) and its height, `sign × (value 1 px inside − value 1 px
+/// outside)`; `None` where the profile leaves the image or never steps down. `values` is
+/// scratch space (its contents are replaced).
+fn steepest_step(
+    image: &GreyImage,
+    (base, n): (Vector2<f64>, Vector2<f64>),
+    sign: f32,
+    (shift, search): (f64, f64),
+    values: &mut Vec<f32>,
+) -> Option<(f64, f32)> {
     // Profiles sampled every half pixel (every pixel for wide bands: 12 samples each way are
     // plenty) over the band, plus the reach of the step measure (±1 px, `reach` samples) and
     // one sample (sub-pixel peak).
@@ -262,49 +403,32 @@ fn refine_side(
     let reach = (1.0 / step_px).round().max(1.0) as i64;
     let inner = (search / step_px).ceil() as i64;
     let half = inner + reach + 1;
-    let count = ((len / 8.0).round() as usize).clamp(8, 32);
-    let mut values = Vec::with_capacity((2 * half + 1) as usize);
-    // (position along the side from its middle, edge offset along n), pixels.
-    let mut points: Vec<(f64, f64)> = Vec::with_capacity(count);
-    for j in 0..count {
-        let t = 0.15 + 0.7 * (j as f64 + 0.5) / count as f64;
-        let base = a + (b - a) * t;
-        values.clear();
-        for m in -half..=half {
-            let at = base + n * (m as f64 * step_px);
-            match image.bilinear(at.x, at.y) {
-                Some(v) => values.push(sign * v),
-                None => break,
-            }
-        }
-        if values.len() != (2 * half + 1) as usize {
-            continue;
-        }
-        // Frame inside (−n), outside (+n): the step is value(d − 1 px) − value(d + 1 px).
-        let step = |m: i64| {
-            let i = (m + half) as usize;
-            values[i - reach as usize] - values[i + reach as usize]
-        };
-        let (mut best, mut at) = (0.0f32, None);
-        for m in -inner..=inner {
-            let s = step(m);
-            if s > best {
-                (best, at) = (s, Some(m));
-            }
-        }
-        let Some(m) = at else { continue };
-        let (l, c, r) = (step(m - 1) as f64, best as f64, step(m + 1) as f64);
-        let curvature = l - 2.0 * c + r;
-        let delta = if curvature < 0.0 {
-            (0.5 * (l - r) / curvature).clamp(-0.5, 0.5)
-        } else {
-            0.0
-        };
-        points.push(((t - 0.5) * len, (m as f64 + delta) * step_px));
+    values.clear();
+    for m in -half..=half {
+        let at = base + n * (shift + m as f64 * step_px);
+        values.push(sign * image.bilinear(at.x, at.y)?);
     }
-    let (offset, slope) = robust_line(&points, count)?;
-    let dir = (u + n * slope).normalize();
-    Some(((a + b) / 2.0 + n * offset, dir))
+    // Frame inside (−n), outside (+n): the step is value(d − 1 px) − value(d + 1 px).
+    let step = |m: i64| {
+        let i = (m + half) as usize;
+        values[i - reach as usize] - values[i + reach as usize]
+    };
+    let (mut best, mut at) = (0.0f32, None);
+    for m in -inner..=inner {
+        let s = step(m);
+        if s > best {
+            (best, at) = (s, Some(m));
+        }
+    }
+    let m = at?;
+    let (l, c, r) = (step(m - 1) as f64, best as f64, step(m + 1) as f64);
+    let curvature = l - 2.0 * c + r;
+    let delta = if curvature < 0.0 {
+        (0.5 * (l - r) / curvature).clamp(-0.5, 0.5)
+    } else {
+        0.0
+    };
+    Some((shift + (m as f64 + delta) * step_px, best))
 }
 
 /// Tukey-weighted straight-line fit `e = offset + slope·s` to `(s, e)` points, started from
@@ -1256,6 +1380,29 @@ mod tests {
             .collect()
     }
 
+    /// That ring bright on dark and dark on bright (with the polarity of each), dark hairs
+    /// (grey 0.05) over the pixels `hair` says.
+    fn rings_with_hairs(
+        w: usize,
+        h: usize,
+        center: Vector2<f64>,
+        angle: f64,
+        hair: impl Fn(usize) -> bool,
+    ) -> [(GreyImage, Polarity); 2] {
+        [
+            (0.9, 0.2, Polarity::BrightDots),
+            (0.2, 0.9, Polarity::DarkDots),
+        ]
+        .map(|(frame, background, polarity)| {
+            let px: Vec<f32> = ring(w, h, center, angle, frame, background)
+                .into_iter()
+                .enumerate()
+                .map(|(i, v)| if hair(i) { 0.05 } else { v })
+                .collect();
+            (GreyImage::new(w, h, px).unwrap(), polarity)
+        })
+    }
+
     /// Corners of that ring's outer outline.
     fn ring_corners(center: Vector2<f64>, angle: f64) -> Quad {
         let (s, c) = angle.sin_cos();
@@ -1312,16 +1459,7 @@ mod tests {
             let (x, y) = ((i % w) as f64, (i / w) as f64);
             ((y - 20.0) - 0.8 * (x - 10.0)).abs() / 0.8f64.hypot(1.0) < 1.5
         };
-        for (frame, background, polarity) in [
-            (0.9, 0.2, Polarity::BrightDots),
-            (0.2, 0.9, Polarity::DarkDots),
-        ] {
-            let px: Vec<f32> = ring(w, h, center, angle, frame, background)
-                .into_iter()
-                .enumerate()
-                .map(|(i, v)| if hair(i) { 0.05 } else { v })
-                .collect();
-            let image = GreyImage::new(w, h, px).unwrap();
+        for (image, polarity) in rings_with_hairs(w, h, center, angle, hair) {
             let found =
                 QuadFinder::default().find(&image, &QuadParams::default(), None, &[0.1], &|_| true);
             let quads = bright_quads(&found, polarity);
@@ -1331,6 +1469,45 @@ mod tests {
                 .map(|q| q.corner_distance(&truth))
                 .fold(f64::INFINITY, f64::min);
             assert!(best < 0.7, "{polarity:?}: {best} px, {found:?}");
+        }
+    }
+
+    #[test]
+    fn edges_confirm_the_frame_under_hairs_and_not_a_period_off() {
+        let (w, h) = (320usize, 300usize);
+        let (center, angle, period) = (Vector2::new(160.0, 150.0), 0.35, 10.0);
+        let truth = ring_corners(center, angle);
+        let (s, c) = angle.sin_cos();
+        // Dark hairs 3 px wide: one along the inside of a side (what bends a found outline
+        // most), one across the ring.
+        let hairs = |i: usize| {
+            let (dx, dy) = ((i % w) as f64 - center.x, (i / w) as f64 - center.y);
+            let (u, v) = (c * dx + s * dy, -s * dx + c * dy);
+            (u + 72.0).abs() < 1.5 || (v - 0.3 * u - 10.0).abs() < 1.5
+        };
+        for (image, polarity) in rings_with_hairs(w, h, center, angle, hairs) {
+            assert!(
+                truth.edges_confirmed(&image, polarity, period),
+                "{polarity:?}"
+            );
+            // The outline a period off along either axis, or a period larger all round.
+            let along = [Vector2::new(c, s), Vector2::new(-s, c)].map(|d| d * period);
+            for moved in [along[0], -along[0], along[1], -along[1]] {
+                let off = Quad {
+                    corners: truth.corners.map(|p| p + moved),
+                };
+                assert!(
+                    !off.edges_confirmed(&image, polarity, period),
+                    "{polarity:?} {moved:?}"
+                );
+            }
+            let larger = Quad {
+                corners: truth.corners.map(|p| center + (p - center) * (90.0 / 80.0)),
+            };
+            assert!(
+                !larger.edges_confirmed(&image, polarity, period),
+                "{polarity:?}"
+            );
         }
     }
 
