@@ -756,25 +756,18 @@ impl StampDetector {
         // Perspective: the frame's outline says how the affine view of the planes bends,
         // unless an occluder bent the outline (a hair or a dust speck stuck to the frame).
         // Where the bend moves cells and the outline's view reads nothing acceptable, the
-        // affine view is read too, and the better correlated reading stands.
+        // affine view is read too, and stands if its reading is accepted.
         let cell_px = 0.5 * analysis.mean_pixel_period();
         let warp = frame
             .as_ref()
             .and_then(|q| Some((q.perspective_warp()?, q.perspective_bend()?)));
+        let accepted = |m: &Match| self.reading_rejected(m).is_none();
         let found = match warp {
             None => thumb_at(None),
             Some((warp, bend)) => {
                 let warped = thumb_at(Some(&warp));
-                let unread = warped
-                    .as_ref()
-                    .is_none_or(|w| self.reading_rejected(w).is_some());
-                if unread && bend > MAX_UNTESTED_BEND * cell_px {
-                    match (warped, thumb_at(None)) {
-                        (Some(w), Some(a)) => {
-                            Some(if a.correlation > w.correlation { a } else { w })
-                        }
-                        (w, a) => w.or(a),
-                    }
+                if !warped.as_ref().is_some_and(accepted) && bend > MAX_UNTESTED_BEND * cell_px {
+                    thumb_at(None).filter(accepted).or(warped)
                 } else {
                     warped
                 }
