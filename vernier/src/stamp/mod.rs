@@ -10,7 +10,8 @@
 //!   the measured period; the bitmap thumbnail read along the phase planes (`thumbnail`) is matched
 //!   against every bitmap in its 8 dihedral orientations and a few period shifts (`matching`); the
 //!   reading must be confident ([`StampParams::min_decode_confidence`]) and the frame it predicts
-//!   must lie where the frame was found ([`StampParams::max_frame_offset`]); the pose follows. Any
+//!   must lie where the frame was found ([`StampParams::max_frame_offset`]), or, where an
+//!   occluder bent the outline found, where the image shows its edges; the pose follows. Any
 //!   number of stamps per image, several with the same bitmap included (the original keeps one of
 //!   them).
 //! * **full image** (other bitmaps, e.g. an HP code layout seen as a bitmap): the phase engine on
@@ -115,8 +116,11 @@ pub struct StampParams {
     /// by the fine pose (the bitmap's outline placed by the phase planes and the match), in
     /// grid periods. Default 0.5: the frame is what pins the period shift, so a pose one or
     /// more periods off (a grid matched at the wrong shift, a false marker beside a real one)
-    /// is dropped, while the frame's edges are located to a small fraction of a period. (The
-    /// frame's size is checked by [`StampParams::size_tolerance`].)
+    /// is dropped, while the frame's edges are located to a small fraction of a period. Beyond
+    /// it the outline found may have been bent by a hair or dust stuck to the frame, so the
+    /// reading still stands if the image shows the frame's edges all round where the pose puts
+    /// them rather than a period out (docs/design.md#stamp-matching). (The frame's size is
+    /// checked by [`StampParams::size_tolerance`].)
     pub max_frame_offset: f64,
     /// Report mirrored markers (a flipped image or optical path), with their proper rigid pose
     /// (`gamma = −π`, see the module docs). Default true; false drops them (and mirrored
