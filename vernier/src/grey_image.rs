@@ -20,6 +20,17 @@ pub enum Polarity {
     DarkDots,
 }
 
+impl Polarity {
+    /// +1 for bright dots, −1 for dark ones: `sign × intensity` is higher on the dots' (and
+    /// their finders' and frames') material than on the background.
+    pub fn sign(self) -> f32 {
+        match self {
+            Polarity::BrightDots => 1.0,
+            Polarity::DarkDots => -1.0,
+        }
+    }
+}
+
 impl std::str::FromStr for Polarity {
     type Err = Error;
     fn from_str(s: &str) -> Result<Self> {

@@ -197,10 +197,7 @@ fn block_phase(
     if !(inside(x0, x1, image.width()) && inside(y0, y1, image.height())) {
         return None;
     }
-    let sign = match polarity {
-        Polarity::BrightDots => 1.0,
-        Polarity::DarkDots => -1.0,
-    };
+    let sign = f64::from(polarity.sign());
     // Σw, Σw·v, and per axis Σw·v·e and Σw·e with e = exp(−2πi·l): the weighted mean is taken
     // out of the first sum with the second, so the background's level does not leak in. Along
     // a row, l and e change by the same step at every sample: no trigonometry per sample.

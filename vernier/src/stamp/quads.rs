@@ -225,7 +225,7 @@ impl Quad {
     ) -> bool {
         let center = self.center();
         let band = 0.25 * period_px;
-        let sign = polarity_sign(polarity);
+        let sign = polarity.sign();
         // Per side: the medians on the side and a period out.
         let mut sides = [[0.0f64; 2]; 4];
         let mut values = Vec::new();
@@ -237,16 +237,15 @@ impl Quad {
             let mut heights: [Vec<f64>; 2] = Default::default();
             for j in 0..side.count() {
                 let base = side.profile(j).0;
-                let steps = [0.0, period_px].map(|shift| {
-                    steepest_step(image, (base, side.normal), sign, (shift, band), &mut values)
-                });
                 // Profiles that leave the image are not judged (a profile that never steps
                 // down counts as a zero step).
                 let far = base + side.normal * (period_px + band + 2.0);
                 if image.bilinear(far.x, far.y).is_none() {
                     continue;
                 }
-                for (h, step) in heights.iter_mut().zip(steps) {
+                for (h, shift) in heights.iter_mut().zip([0.0, period_px]) {
+                    let step =
+                        steepest_step(image, (base, side.normal), sign, (shift, band), &mut values);
                     h.push(step.map_or(0.0, |(_, height)| height as f64));
                 }
             }
@@ -265,7 +264,7 @@ impl Quad {
     /// One pass of [`Quad::refined`] with a band of ±`search` pixels.
     fn refit(&self, image: &GreyImage, polarity: Polarity, search: f64) -> Option<Quad> {
         let center = self.center();
-        let sign = polarity_sign(polarity);
+        let sign = polarity.sign();
         let mut lines = [(Vector2::zeros(), Vector2::zeros()); 4];
         for (k, line) in lines.iter_mut().enumerate() {
             let a = self.corners[k];
@@ -273,15 +272,6 @@ impl Quad {
             *line = refine_side(image, a, b, center, sign, search)?;
         }
         corners_of(&lines).map(|corners| Quad { corners })
-    }
-}
-
-/// +1 for a frame brighter than its surroundings, −1 for a darker one: profiles multiplied by
-/// it step down from frame to outside.
-fn polarity_sign(polarity: Polarity) -> f32 {
-    match polarity {
-        Polarity::BrightDots => 1.0,
-        Polarity::DarkDots => -1.0,
     }
 }
 
