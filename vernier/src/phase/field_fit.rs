@@ -190,9 +190,13 @@ pub struct NodeMask {
     discrepant: Vec<bool>,
     /// Taper length from discrepant cells, cells.
     clearance: f64,
-    /// Per cell: a discrepant cell is within `ceil(clearance)` cells of it (pixels of other
-    /// cells are at least `clearance` away from every discrepant one).
-    near_discrepant: Vec<bool>,
+    /// The discrepant cells within `ceil(clearance)` cells of each cell (pixels of a cell with
+    /// none are at least `clearance` away from every discrepant one), as offsets from it,
+    /// nearest first: cell `i`'s are `nearby[nearby_start[i]..nearby_start[i + 1]]`. Most
+    /// cells have none or a few of the `(2·ceil(c) + 1)²` around them, so a pixel's distance
+    /// search looks at those only.
+    nearby: Vec<(i8, i8)>,
+    nearby_start: Vec<usize>,
 }
 
 /// Shortest distance from a discrepant cell's square, in half-period cells, over which a
@@ -253,9 +257,10 @@ impl NodeMask {
             cell_dims,
             discrepant,
             clearance: MIN_CLEARANCE,
-            near_discrepant: Vec::new(),
+            nearby: Vec::new(),
+            nearby_start: Vec::new(),
         };
-        mask.mark_near_discrepant();
+        mask.list_nearby_discrepant();
         mask
     }
 
@@ -281,23 +286,41 @@ impl NodeMask {
         (clearance > MIN_CLEARANCE).then(|| {
             let mut wider = self.clone();
             wider.clearance = clearance;
-            wider.mark_near_discrepant();
+            wider.list_nearby_discrepant();
             wider
         })
     }
 
-    /// Fills `near_discrepant` for the current clearance.
-    fn mark_near_discrepant(&mut self) {
-        let reach = self.clearance.ceil() as i64;
-        let ((v1, v2), (n1, n2)) = (self.first_cell, self.cell_dims);
-        let near: Vec<bool> = (v1..v1 + n1 as i64)
-            .flat_map(|a| (v2..v2 + n2 as i64).map(move |b| (a, b)))
-            .map(|(a, b)| {
-                (-reach..=reach)
-                    .any(|da| (-reach..=reach).any(|db| self.is_discrepant(a + da, b + db)))
-            })
+    /// Fills `nearby` and `nearby_start` for the current clearance.
+    fn list_nearby_discrepant(&mut self) {
+        // At most MAX_CLEARANCE cells: offsets fit in a byte.
+        let reach = self.clearance.ceil().min(MAX_CLEARANCE) as i8;
+        let mut offsets: Vec<(i8, i8)> = (-reach..=reach)
+            .flat_map(|da| (-reach..=reach).map(move |db| (da, db)))
             .collect();
-        self.near_discrepant = near;
+        offsets.sort_by_key(|&(da, db)| i32::from(da).pow(2) + i32::from(db).pow(2));
+        let ((v1, v2), (n1, n2)) = (self.first_cell, self.cell_dims);
+        let (mut nearby, mut starts) = (Vec::new(), Vec::with_capacity(n1 * n2 + 1));
+        for a in v1..v1 + n1 as i64 {
+            for b in v2..v2 + n2 as i64 {
+                starts.push(nearby.len());
+                let discrepant = offsets
+                    .iter()
+                    .filter(|&&(da, db)| self.is_discrepant(a + i64::from(da), b + i64::from(db)));
+                nearby.extend(discrepant);
+            }
+        }
+        starts.push(nearby.len());
+        self.nearby = nearby;
+        self.nearby_start = starts;
+    }
+
+    /// The discrepant cells near cell index `i`, as offsets from it, nearest first.
+    fn nearby_discrepant(&self, i: usize) -> &[(i8, i8)] {
+        match (self.nearby_start.get(i), self.nearby_start.get(i + 1)) {
+            (Some(&start), Some(&end)) => self.nearby.get(start..end).unwrap_or(&[]),
+            _ => &[],
+        }
     }
 
     /// Whether the dot of node `(k1, k2)` is drawn.
@@ -326,22 +349,23 @@ impl NodeMask {
     #[inline(always)]
     fn clearance(&self, v: [f64; 2]) -> f64 {
         let (c1, c2) = (v[0].round() as i64, v[1].round() as i64);
-        match self.cell_index(c1, c2) {
-            None => return 0.0,
-            Some(i) if !self.near_discrepant[i] => return 1.0,
-            Some(_) => {}
+        let Some(i) = self.cell_index(c1, c2) else {
+            return 0.0;
+        };
+        let nearby = self.nearby_discrepant(i);
+        if nearby.is_empty() {
+            return 1.0;
         }
-        let reach = self.clearance.ceil() as i64;
-        // Squared distances in the search, one root at the end.
+        // Squared distances in the search, one root at the end; a pixel on a discrepant cell
+        // (offset (0, 0), listed first) is at distance 0, the least there is.
         let mut nearest2 = f64::INFINITY;
-        for d1 in -reach..=reach {
-            for d2 in -reach..=reach {
-                let (w1, w2) = (c1 + d1, c2 + d2);
-                if self.is_discrepant(w1, w2) {
-                    let gap1 = ((v[0] - w1 as f64).abs() - 0.5).max(0.0);
-                    let gap2 = ((v[1] - w2 as f64).abs() - 0.5).max(0.0);
-                    nearest2 = nearest2.min(gap1 * gap1 + gap2 * gap2);
-                }
+        for &(d1, d2) in nearby {
+            let (w1, w2) = (c1 + i64::from(d1), c2 + i64::from(d2));
+            let gap1 = ((v[0] - w1 as f64).abs() - 0.5).max(0.0);
+            let gap2 = ((v[1] - w2 as f64).abs() - 0.5).max(0.0);
+            nearest2 = nearest2.min(gap1 * gap1 + gap2 * gap2);
+            if nearest2 == 0.0 {
+                break;
             }
         }
         if nearest2 >= self.clearance * self.clearance {
@@ -735,6 +759,18 @@ impl RowSums {
     }
 }
 
+/// Pairwise (tree) sum of the lanes: four short dependent steps, not sixteen. Each step adds
+/// the upper half onto the lower one, written out at fixed widths so that each compiles to
+/// vector additions (a loop over halving widths compiled to scalar code).
+#[inline(always)]
+fn tree_sum(v: [f32; LANES]) -> f64 {
+    const _: () = assert!(LANES == 16, "tree_sum is written for 16 lanes");
+    let eight: [f32; 8] = std::array::from_fn(|k| v[k] + v[k + 8]);
+    let four: [f32; 4] = std::array::from_fn(|k| eight[k] + eight[k + 4]);
+    let two = [four[0] + four[2], four[1] + four[3]];
+    (two[0] + two[1]) as f64
+}
+
 /// The first `m` values of `v` in whole lanes.
 #[inline(always)]
 fn lanes<T>(v: &[T; BANK], m: usize) -> std::slice::ChunksExact<'_, T> {
@@ -848,19 +884,7 @@ impl HarmonicBank {
                 s2[lane] -= b2r[lane] * ei[lane] + b2i[lane] * er[lane];
             }
         }
-        // A pairwise (tree) sum of the lanes: four short dependent steps, not sixteen.
-        let total = |v: [f32; LANES]| {
-            let mut v = v;
-            let mut width = LANES / 2;
-            while width > 0 {
-                for k in 0..width {
-                    v[k] += v[k + width];
-                }
-                width /= 2;
-            }
-            v[0] as f64
-        };
-        (total(value), [total(s1), total(s2)])
+        (tree_sum(value), [tree_sum(s1), tree_sum(s2)])
     }
 
     /// Adds `ψ·e^{−ih·φ}` to the demodulation sums.
@@ -1196,10 +1220,15 @@ impl Iterator for FieldPixels<'_> {
             self.col += 1;
             self.z = [z[0] * self.step[0], z[1] * self.step[1]];
             self.half = [half[0] * self.half_step[0], half[1] * self.half_step[1]];
-            let u = [self.planes[0].at(x, y) / TAU, self.planes[1].at(x, y) / TAU];
-            let (layout, w) = self.weights.weight(u, [half[0].re, half[1].re]);
             let index = (row - f.rows.start) * f.cols.len() + (col - f.cols.start);
             let clear = f.clearance.get(index).copied().unwrap_or(0.0) as f64;
+            if clear <= 0.0 {
+                // On a discrepant cell (a finder, a missing dot) or outside the field: no
+                // weight, whatever the nodes', so theirs are not computed.
+                continue;
+            }
+            let u = [self.planes[0].at(x, y) / TAU, self.planes[1].at(x, y) / TAU];
+            let (layout, w) = self.weights.weight(u, [half[0].re, half[1].re]);
             let (layout, w) = (layout * clear, w * clear);
             let g = self
                 .pixels
