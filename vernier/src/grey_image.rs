@@ -184,17 +184,17 @@ impl GreyImage {
         }
         let rows = (width, height, step);
         let pixels = match format {
-            PixelFormat::Mono8 => convert_rows::<_, 1>(data, rows, |p| unit8(p[0])),
+            PixelFormat::Mono8 => convert_rows::<_, 1>(data, rows, |p| unit(p[0])),
             PixelFormat::Mono16 { big_endian } => convert_rows::<_, 2>(data, rows, |b| {
-                unit16(match big_endian {
+                unit(match big_endian {
                     true => u16::from_be_bytes([b[0], b[1]]),
                     false => u16::from_le_bytes([b[0], b[1]]),
                 })
             }),
-            PixelFormat::Rgb8 => convert_rows::<_, 3>(data, rows, |p| luma8(p[0], p[1], p[2])),
-            PixelFormat::Rgba8 => convert_rows::<_, 4>(data, rows, |p| luma8(p[0], p[1], p[2])),
-            PixelFormat::Bgr8 => convert_rows::<_, 3>(data, rows, |p| luma8(p[2], p[1], p[0])),
-            PixelFormat::Bgra8 => convert_rows::<_, 4>(data, rows, |p| luma8(p[2], p[1], p[0])),
+            PixelFormat::Rgb8 => convert_rows::<_, 3>(data, rows, |p| luma(p[0], p[1], p[2])),
+            PixelFormat::Rgba8 => convert_rows::<_, 4>(data, rows, |p| luma(p[0], p[1], p[2])),
+            PixelFormat::Bgr8 => convert_rows::<_, 3>(data, rows, |p| luma(p[2], p[1], p[0])),
+            PixelFormat::Bgra8 => convert_rows::<_, 4>(data, rows, |p| luma(p[2], p[1], p[0])),
         };
         Ok(GreyImage {
             width,
@@ -220,7 +220,7 @@ impl GreyImage {
         Ok(GreyImage {
             width,
             height,
-            pixels: convert_rows::<_, 1>(values, (width, height, width), |v| unit16(v[0])),
+            pixels: packed_grey::<_, 1>(values, width, height),
         })
     }
 
@@ -255,25 +255,15 @@ impl GreyImage {
         use image::DynamicImage as D;
         let (w, h) = (decoded.width() as usize, decoded.height() as usize);
         check_size(w, h)?;
-        // Rows of `w` pixels of `N` samples each, packed.
-        let packed = |n: usize| (w, h, w * n);
         let pixels: Vec<f32> = match decoded {
-            D::ImageLuma8(i) => convert_rows::<_, 1>(i.as_raw(), packed(1), |p| unit8(p[0])),
-            D::ImageLumaA8(i) => convert_rows::<_, 2>(i.as_raw(), packed(2), |p| unit8(p[0])),
-            D::ImageRgb8(i) => {
-                convert_rows::<_, 3>(i.as_raw(), packed(3), |p| luma8(p[0], p[1], p[2]))
-            }
-            D::ImageRgba8(i) => {
-                convert_rows::<_, 4>(i.as_raw(), packed(4), |p| luma8(p[0], p[1], p[2]))
-            }
-            D::ImageLuma16(i) => convert_rows::<_, 1>(i.as_raw(), packed(1), |p| unit16(p[0])),
-            D::ImageLumaA16(i) => convert_rows::<_, 2>(i.as_raw(), packed(2), |p| unit16(p[0])),
-            D::ImageRgb16(i) => {
-                convert_rows::<_, 3>(i.as_raw(), packed(3), |p| luma16(p[0], p[1], p[2]))
-            }
-            D::ImageRgba16(i) => {
-                convert_rows::<_, 4>(i.as_raw(), packed(4), |p| luma16(p[0], p[1], p[2]))
-            }
+            D::ImageLuma8(i) => packed_grey::<_, 1>(i.as_raw(), w, h),
+            D::ImageLumaA8(i) => packed_grey::<_, 2>(i.as_raw(), w, h),
+            D::ImageRgb8(i) => packed_grey::<_, 3>(i.as_raw(), w, h),
+            D::ImageRgba8(i) => packed_grey::<_, 4>(i.as_raw(), w, h),
+            D::ImageLuma16(i) => packed_grey::<_, 1>(i.as_raw(), w, h),
+            D::ImageLumaA16(i) => packed_grey::<_, 2>(i.as_raw(), w, h),
+            D::ImageRgb16(i) => packed_grey::<_, 3>(i.as_raw(), w, h),
+            D::ImageRgba16(i) => packed_grey::<_, 4>(i.as_raw(), w, h),
             // Floating-point samples may hold NaN or infinities: checked.
             other => return Self::new(w, h, other.to_luma32f().into_raw()),
         };
@@ -706,14 +696,44 @@ fn check_size(width: usize, height: usize) -> Result<()> {
     Ok(())
 }
 
-/// An 8-bit sample in `[0, 1]`.
-fn unit8(v: u8) -> f32 {
-    v as f32 / 255.0
+/// The integer sample types of the input layouts.
+trait Sample: Copy {
+    /// The value of full scale (white).
+    const FULL_SCALE: f32;
+    fn value(self) -> f32;
 }
 
-/// A 16-bit sample in `[0, 1]`.
-fn unit16(v: u16) -> f32 {
-    v as f32 / 65535.0
+impl Sample for u8 {
+    const FULL_SCALE: f32 = 255.0;
+    fn value(self) -> f32 {
+        self as f32
+    }
+}
+
+impl Sample for u16 {
+    const FULL_SCALE: f32 = 65535.0;
+    fn value(self) -> f32 {
+        self as f32
+    }
+}
+
+/// A grey sample in `[0, 1]`.
+fn unit<T: Sample>(v: T) -> f32 {
+    v.value() / T::FULL_SCALE
+}
+
+/// The Rec. 601 luma of a colour sample, in `[0, 1]`.
+fn luma<T: Sample>(r: T, g: T, b: T) -> f32 {
+    (LUMA_R * r.value() + LUMA_G * g.value() + LUMA_B * b.value()) / T::FULL_SCALE
+}
+
+/// The grey values of a packed `width × height` image of `N` samples per pixel: grey (and
+/// alpha) for `N < 3`, R, G, B (and alpha) otherwise.
+fn packed_grey<T: Sample, const N: usize>(data: &[T], width: usize, height: usize) -> Vec<f32> {
+    convert_rows::<T, N>(data, (width, height, width * N), |p| match N {
+        1 | 2 => unit(p[0]),
+        _ => luma(p[0], p[1], p[2]),
+    })
 }
 
 /// Converts the first `height` rows of `data`, each `step` samples apart and holding `width`
@@ -737,14 +757,6 @@ fn convert_rows<T, const N: usize>(
         }
     }
     out
-}
-
-fn luma8(r: u8, g: u8, b: u8) -> f32 {
-    (LUMA_R * r as f32 + LUMA_G * g as f32 + LUMA_B * b as f32) / 255.0
-}
-
-fn luma16(r: u16, g: u16, b: u16) -> f32 {
-    (LUMA_R * r as f32 + LUMA_G * g as f32 + LUMA_B * b as f32) / 65535.0
 }
 
 /// Outputs of at least this many pixels are binned on two threads.
