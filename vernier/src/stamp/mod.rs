@@ -735,11 +735,11 @@ impl StampDetector {
             }
         }
         let planes = analysis.planes.map(|p| p.with_wrapped_offset());
+        let period = analysis.mean_pixel_period();
         if let Some(q) = &frame {
             if !self.shapes.iter().any(|s| self.frame_fits(q, &planes, s.0)) {
                 log::debug!(
-                    "stamp at {center:?}: frame size does not fit the grid period {:.2} px",
-                    analysis.mean_pixel_period()
+                    "stamp at {center:?}: frame size does not fit the grid period {period:.2} px"
                 );
                 return Ok(None);
             }
@@ -761,7 +761,7 @@ impl StampDetector {
         // unless an occluder bent the outline (a hair or a dust speck stuck to the frame).
         // Where the bend moves cells and the outline's view reads nothing acceptable, the
         // affine view is read too, and stands if its reading is accepted.
-        let cell_px = 0.5 * analysis.mean_pixel_period();
+        let cell_px = 0.5 * period;
         let warp = frame
             .as_ref()
             .and_then(|q| Some((q.perspective_warp()?, q.perspective_bend()?)));
@@ -798,7 +798,6 @@ impl StampDetector {
             };
             // Centres, not corners: perspective bends the corners away from the affine view of
             // the phase planes (0.6 period on stamp1.png), not the centre.
-            let period = analysis.mean_pixel_period();
             let offset = (q.center() - predicted.center()).norm() / period;
             if offset > self.params.max_frame_offset {
                 // The outline found may be bent by an occluder stuck to the frame: the image
