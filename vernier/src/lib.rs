@@ -89,6 +89,7 @@ pub mod error;
 pub mod layout;
 pub mod limits;
 pub use error::{Error, Result};
+mod decimate;
 pub mod grey_image;
 mod level_surface;
 mod lru;

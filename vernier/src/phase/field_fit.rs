@@ -76,7 +76,7 @@
 //! CPU has it. A fit whose steps stop contracting once the weights are frozen is given up at
 //! once rather than run to the iteration limit (it would be refused there).
 
-use super::noise::{quantisation_variance, white_noise_variance, NoisePlan};
+use super::noise::{quantisation_variance_in, white_noise_variance, NoisePlan};
 use super::normal_equations::NormalEquations;
 use super::plane::{wrap_to_pi, PhasePlane};
 use super::MIN_NOISE_STD;
@@ -149,13 +149,11 @@ const SETTLED_STEP: f64 = 0.05;
 const MAX_CORRECTION: f64 = PI;
 /// Fewest regular nodes a field must have (a 4 × 4 block of dots).
 const MIN_NODES: usize = 16;
-/// The field is binned 2 × 2 while its period stays at least this many binned pixels (4×
-/// fewer pixels to sweep per level): the fundamental loses < 5 % of its amplitude to the box
-/// filter, and the harmonics up to the second stay below Nyquist (higher ones, weak on any
-/// but the sharpest dots, are then left out).
+/// The field is binned 2 × 2 (4× fewer pixels to sweep), through the anti-aliasing filter of
+/// [`crate::decimate`], where its period is at least this many binned pixels: the fundamental
+/// and the second harmonic stay in the filter's pass band (gain within 2 %), and every
+/// harmonic of a quarter cycle per input pixel or more is removed rather than folded.
 const MIN_BINNED_PERIOD: f64 = 6.0;
-/// Largest binning factor.
-const MAX_BINNING: usize = 2;
 /// Two components of the model must differ by at least this many cycles per field side to be
 /// told apart.
 const MIN_SEPARATION_CYCLES: f64 = 2.0;
@@ -608,7 +606,11 @@ fn all_harmonics() -> Vec<(i32, i32)> {
 /// before it (and their opposites: the image is real). On a 4-px grid, say, the third
 /// harmonic folds onto the fundamental and is left out; on a rotated grid most aliased
 /// harmonics stay apart and are modelled.
-fn resolvable_harmonics(planes: &[PhasePlane; 2], side: f64) -> Vec<(i32, i32)> {
+///
+/// On an `unaliased` grid (anti-aliased binning, [`crate::decimate`]) nothing folds: a
+/// harmonic beyond the Nyquist square is gone from the image, and one is kept only while it
+/// stays half the separation inside the square (that far from its own conjugate's fold).
+fn resolvable_harmonics(planes: &[PhasePlane; 2], side: f64, unaliased: bool) -> Vec<(i32, i32)> {
     let mut candidates = all_harmonics();
     candidates.sort_by_key(|&(a, b)| (a.abs().max(b.abs()), a.abs() + b.abs()));
     let wave = |(h1, h2): (i32, i32)| {
@@ -619,9 +621,20 @@ fn resolvable_harmonics(planes: &[PhasePlane; 2], side: f64) -> Vec<(i32, i32)> 
         ]
     };
     let separation = MIN_SEPARATION_CYCLES * TAU / side.max(1.0);
+    let inside = |(h1, h2): (i32, i32)| {
+        let (h1, h2) = (h1 as f64, h2 as f64);
+        let k = [
+            h1 * planes[0].a + h2 * planes[1].a,
+            h1 * planes[0].b + h2 * planes[1].b,
+        ];
+        k.iter().all(|v| v.abs() <= PI - 0.5 * separation)
+    };
     let mut taken = vec![[0.0, 0.0], wave((1, 0)), wave((0, 1))];
     let mut kept = Vec::new();
     for h in candidates {
+        if unaliased && !inside(h) {
+            continue;
+        }
         let k = wave(h);
         let near = |q: &[f64; 2]| {
             [1.0, -1.0].iter().any(|&sign| {
@@ -1294,37 +1307,48 @@ pub fn fit_dot_field_against(
         .iter()
         .map(|p| p.pixel_period())
         .fold(f64::INFINITY, f64::min);
-    let mut factor = 1usize;
-    while factor < MAX_BINNING && period / (2 * factor) as f64 >= MIN_BINNED_PERIOD {
-        factor *= 2;
-    }
-    // Bins start on multiples of the factor in image coordinates, not at the field's edge: in
-    // an image of even width and height, a half or quarter turn or a flip then maps bins onto
-    // bins, and the fit of the turned image sees the same binned pixels (the field's box
-    // alone would pair other pixels, which moves the result within its noise).
+    let factor = if period / 2.0 >= MIN_BINNED_PERIOD {
+        2
+    } else {
+        1
+    };
+    let f = factor as f64;
+    // Bins start on even pixels of the image, not at the field's edge, and lie symmetrically
+    // about the image's centre ([`crate::decimate::centre_offset`]): a half or quarter turn
+    // or a flip maps bins onto bins, and the fit of the turned image sees the same binned
+    // pixels (bins placed from the field's box would move the result within its noise).
     let aligned = |range: &std::ops::Range<usize>| {
         let start = range.start / factor * factor;
-        (start, (range.end - start) / factor * factor)
+        start..start + (range.end - start) / factor * factor
     };
-    let ((left, width), (top, height)) = (aligned(&field.cols), aligned(&field.rows));
-    let mut sub = image.crop(left, top, width, height).ok()?;
-    // The rounding to the input's levels, per binned pixel (the mean of f² rounded values).
-    let rounding = quantisation_variance(sub.pixels()) / (factor * factor) as f64;
-    let mut scale = 1;
-    while scale < factor {
-        let (rb, cb) = (sub.height() / 2, sub.width() / 2);
-        let mut binned = Vec::new();
-        crate::grey_image::bin_2x2(sub.pixels(), sub.width(), rb, cb, &mut binned);
-        sub = GreyImage::new(cb, rb, binned).ok()?;
-        scale *= 2;
-    }
-    // Image-frame x of sub-image pixel i (frame x_s = i − w_s div 2): the centre of the
-    // full-resolution pixels it covers, x = f·x_s + o.
-    let f = factor as f64;
+    let (cols, rows) = (aligned(&field.cols), aligned(&field.rows));
+    let (left, top) = (cols.start, rows.start);
+    // The rounding to the input's levels, per input pixel.
+    let rounding =
+        quantisation_variance_in(image.pixels(), image.width(), rows.clone(), cols.clone());
+    // `centre`: where the sub-image's pixel (0, 0) sits from `(left, top)`, input pixels.
+    let (sub, rounding, sampling, centre) = if factor == 2 {
+        // A box average would fold the harmonics above its Nyquist frequency onto the
+        // modelled ones, exactly so along the pixel axes: a bias locked to the pixel grid
+        // (docs/design.md#anti-aliased-binning).
+        use crate::decimate::{centre_offset, decimate_2x2, noise_gain};
+        let gains = [noise_gain(image.width()), noise_gain(image.height())];
+        let sampling = Sampling {
+            unaliased: true,
+            noise_colour: (0.5 / gains[0]) * (0.5 / gains[1]),
+        };
+        let centre = [centre_offset(image.width()), centre_offset(image.height())];
+        let sub = decimate_2x2(image, cols, rows)?;
+        (sub, rounding * gains[0] * gains[1], sampling, centre)
+    } else {
+        let sub = image.crop(left, top, cols.len(), rows.len()).ok()?;
+        (sub, rounding, Sampling::DIRECT, [0.0; 2])
+    };
+    // Image-frame x of sub-image pixel i (frame x_s = i − w_s div 2): x = f·x_s + o.
     let (icx, icy) = image.center();
     let offset = [
-        f * (sub.width() / 2) as f64 + left as f64 + (f - 1.0) / 2.0 - icx as f64,
-        f * (sub.height() / 2) as f64 + top as f64 + (f - 1.0) / 2.0 - icy as f64,
+        f * (sub.width() / 2) as f64 + left as f64 + centre[0] - icx as f64,
+        f * (sub.height() / 2) as f64 + top as f64 + centre[1] - icy as f64,
     ];
     let to_sub = |p: &PhasePlane| PhasePlane {
         a: f * p.a,
@@ -1347,6 +1371,7 @@ pub fn fit_dot_field_against(
         white,
         rival,
         tilt_centre,
+        sampling,
     };
     let mut fit = fit_dot_field_dispatch(&sub, start_sub, mask, goal)?;
     fit.planes = fit.planes.map(|p| {
@@ -1402,7 +1427,7 @@ fn fit_dot_field_generic(
 ) -> Option<FieldFit> {
     let mut field = FieldBox::new(image, &start, mask)?;
     field.set_clearance(&start, mask);
-    let mut model = first_model(image, &mut field, mask, start)?;
+    let mut model = first_model(image, &mut field, mask, start, goal.sampling.unaliased)?;
     let wider = mask.with_clearance_for_blur(&model);
     if let Some(wider) = &wider {
         field.set_clearance(&start, wider);
@@ -1475,6 +1500,28 @@ struct Goal {
     /// Lattice coordinates of the marker centre, periods (the planes' numbering), when the fit
     /// is to measure the field's tilt about it ([`Tilt`]).
     tilt_centre: Option<[f64; 2]>,
+    /// How the fitted image was sampled from the input.
+    sampling: Sampling,
+}
+
+/// How the fitted image was sampled from the input (docs/design.md#anti-aliased-binning).
+#[derive(Clone, Copy)]
+struct Sampling {
+    /// Binned through the anti-aliasing filter: nothing folds, and harmonics beyond the
+    /// Nyquist square are not modelled ([`resolvable_harmonics`]).
+    unaliased: bool,
+    /// The noise variance at the planes' frequencies over the image's total noise variance,
+    /// which the noise estimates measure: 1 for the input's own (white) noise, more where
+    /// the filter took the noise's upper band away ([`crate::decimate::noise_gain`]).
+    noise_colour: f64,
+}
+
+impl Sampling {
+    /// The input's own pixels.
+    const DIRECT: Sampling = Sampling {
+        unaliased: false,
+        noise_colour: 1.0,
+    };
 }
 
 impl Goal {
@@ -1843,9 +1890,10 @@ fn first_model(
     field: &mut FieldBox,
     mask: &NodeMask,
     planes: [PhasePlane; 2],
+    unaliased: bool,
 ) -> Option<Model> {
     let side = field.cols.len().min(field.rows.len()) as f64;
-    let all: Vec<((i32, i32), Complex64)> = resolvable_harmonics(&planes, side)
+    let all: Vec<((i32, i32), Complex64)> = resolvable_harmonics(&planes, side, unaliased)
         .into_iter()
         .map(|h| (h, Complex64::default()))
         .collect();
@@ -2223,7 +2271,7 @@ fn iterate(
     let noise_variance = residual_variance
         .min(goal.white.unwrap_or(f64::INFINITY))
         .max(MIN_NOISE_STD * MIN_NOISE_STD);
-    let unit = noise_variance * sum_w2 / sum_w;
+    let unit = noise_variance * goal.sampling.noise_colour * sum_w2 / sum_w;
     let mut covariance = inverse.fixed_view::<6, 6>(LINEAR, LINEAR).into_owned() * unit;
     if let Some(t) = &tilt {
         // The planes will move with the tilt taken ([`Tilt::planes_shift`]), and take its
