@@ -9,9 +9,9 @@
 //! Here each output pixel is the input low-passed by a separable, symmetric windowed-sinc
 //! filter (Kaiser window; Oppenheim & Schafer, *Discrete-Time Signal Processing*, §7.5.3),
 //! whose stop band starts at the binned Nyquist frequency: what is left above it is below
-//! 3.5e-3 of its amplitude per axis (−49 dB), so nothing folds. The filter is symmetric about the output pixel's
-//! centre, so it moves no phase; below the stop band it only scales each frequency by a real
-//! gain, which the fit's free amplitudes absorb.
+//! 3.5e-3 of its amplitude per axis (−49 dB), so nothing folds. The filter is symmetric about
+//! the output pixel's centre, so it moves no phase; below the stop band it only scales each
+//! frequency by a real gain, which the fit's free amplitudes absorb.
 //!
 //! Output pixels lie two input pixels apart, placed symmetrically about the image's centre
 //! along each axis ([`centre_offset`]): between two input pixels (an even-length filter) on
@@ -76,20 +76,13 @@ impl Taps {
         (self.first + centre_offset(n)).round() as i64
     }
 
-    /// The `count` input pixels that the output pixels from `start + 2i` on read, the first
-    /// at `start + first_source(n)`, from `value(index)` clamped to the axis's `n` pixels:
-    /// every output pixel's taps then lie contiguous, without clamping.
-    fn gather<T>(
-        &self,
-        start: usize,
-        count: usize,
-        n: usize,
-        value: impl Fn(usize) -> T,
-    ) -> Vec<T> {
+    /// The input indices that `outputs` output pixels from `start` on read along an axis of
+    /// `n` pixels, in order and clamped to the axis (its edge pixels repeated): output pixel
+    /// `i`'s taps are the `values.len()` indices from the `2i`-th on, contiguous.
+    fn sources(&self, start: usize, outputs: usize, n: usize) -> impl Iterator<Item = usize> {
         let first = start as i64 + self.first_source(n);
-        (0..count as i64)
-            .map(|j| value((first + j).clamp(0, n as i64 - 1) as usize))
-            .collect()
+        let count = (2 * (outputs - 1) + self.values.len()) as i64;
+        (first..first + count).map(move |j| j.clamp(0, n as i64 - 1) as usize)
     }
 }
 
@@ -145,13 +138,14 @@ pub(crate) fn decimate_2x2(
     let (along_x, along_y) = (Taps::for_axis(width), Taps::for_axis(height));
     let (taps_x, taps_y) = (&along_x.values, &along_y.values);
     let pixels = image.pixels();
-    // The input rows the vertical pass reads (edge rows repeated), each filtered along its
-    // columns first.
-    let rows_read = along_y.gather(rows.start, 2 * (rb - 1) + taps_y.len(), height, |r| r);
+    // The input rows the vertical pass reads, each filtered along its columns first.
+    let rows_read: Vec<usize> = along_y.sources(rows.start, rb, height).collect();
     let mut horizontal = vec![0.0f32; rows_read.len() * cb];
+    let mut read = Vec::new();
     for (line, &row) in horizontal.chunks_exact_mut(cb).zip(&rows_read) {
         let input = &pixels[row * width..(row + 1) * width];
-        let read = along_x.gather(cols.start, 2 * (cb - 1) + taps_x.len(), width, |c| input[c]);
+        read.clear();
+        read.extend(along_x.sources(cols.start, cb, width).map(|c| input[c]));
         for (c, out) in line.iter_mut().enumerate() {
             let span = &read[2 * c..2 * c + taps_x.len()];
             *out = span.iter().zip(taps_x).map(|(v, t)| v * t).sum();
