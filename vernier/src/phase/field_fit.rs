@@ -613,22 +613,18 @@ fn all_harmonics() -> Vec<(i32, i32)> {
 fn resolvable_harmonics(planes: &[PhasePlane; 2], side: f64, unaliased: bool) -> Vec<(i32, i32)> {
     let mut candidates = all_harmonics();
     candidates.sort_by_key(|&(a, b)| (a.abs().max(b.abs()), a.abs() + b.abs()));
-    let wave = |(h1, h2): (i32, i32)| {
+    // The harmonic's wave vector (radians per pixel), and as the pixel grid sees it (folded
+    // into the Nyquist square).
+    let unfolded = |(h1, h2): (i32, i32)| {
         let (h1, h2) = (h1 as f64, h2 as f64);
         [
-            wrap_to_pi(h1 * planes[0].a + h2 * planes[1].a),
-            wrap_to_pi(h1 * planes[0].b + h2 * planes[1].b),
-        ]
-    };
-    let separation = MIN_SEPARATION_CYCLES * TAU / side.max(1.0);
-    let inside = |(h1, h2): (i32, i32)| {
-        let (h1, h2) = (h1 as f64, h2 as f64);
-        let k = [
             h1 * planes[0].a + h2 * planes[1].a,
             h1 * planes[0].b + h2 * planes[1].b,
-        ];
-        k.iter().all(|v| v.abs() <= PI - 0.5 * separation)
+        ]
     };
+    let wave = |h: (i32, i32)| unfolded(h).map(wrap_to_pi);
+    let separation = MIN_SEPARATION_CYCLES * TAU / side.max(1.0);
+    let inside = |h: (i32, i32)| (unfolded(h).iter()).all(|v| v.abs() <= PI - 0.5 * separation);
     let mut taken = vec![[0.0, 0.0], wave((1, 0)), wave((0, 1))];
     let mut kept = Vec::new();
     for h in candidates {
