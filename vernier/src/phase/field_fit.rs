@@ -53,6 +53,10 @@
 //!   The biweight's cut-off is `c = max(4.685·σ, 2B)`, `σ` = 1.4826 × the median absolute
 //!   residual (95 % efficiency on Gaussian noise), at least twice the fundamental's amplitude
 //!   `B` (`MIN_CUTOFF`), so that only gross departures count as outliers on clean images.
+//!   When the weights freeze, each rejected pixel's outlier is grown by hysteresis into the
+//!   8-connected pixels whose residual exceeds 3 × the local scale (`OUTLIER_EDGE`): the soft,
+//!   blurred edge of a hair or of dust, which the biweight keeps and which pulls the dots it
+//!   crosses, goes with its core (`outlier_extents`).
 //!   The first iteration is not weighted; the first two set the weights from their
 //!   residuals, and later ones too while their steps stay large (a start spoiled by dust over
 //!   the window, or an unweighted step pulled by a blob darker than the dots: weights judged on
@@ -109,6 +113,12 @@ const CELL_FULL: f64 = 2.0;
 /// … and has none beyond this many (cos² taper in between). For pure noise a cell of `p²`
 /// pixels has an RMS within ~`1/√(2p²)` of the median: never rejected.
 const CELL_ZERO: f64 = 4.0;
+/// A pixel joined (8-connected) to one the biweight rejects, whose residual exceeds this many
+/// times the residual's local scale, belongs to the same outlier: the soft or blurred edge of
+/// dust, a hair or a scratch, below the cut-off yet far from the dots' model
+/// ([`FieldBox::outlier_extents`]). Pure noise passes it once in 370 pixels, so a rejection
+/// grows through noise by hardly a pixel.
+const OUTLIER_EDGE: f64 = 3.0;
 /// Half-width of the neighbourhood a cell's residual is compared with, nodes (a 7 × 7 block:
 /// a dust spot or a hair covers a minority of it).
 const CELL_NEIGHBOURHOOD: usize = 3;
@@ -1645,7 +1655,7 @@ fn converge(
             return Err(Stall::Failed);
         }
         if freeze {
-            model.frozen = std::mem::take(&mut step.frozen);
+            model.frozen = frozen_weights(&mut step, model.cutoff, mask, field.cols.len());
             run.frozen_at = Some(iteration);
         } else if run.frozen_at.is_none() {
             set_robust_weights(model, &step, mask);
@@ -1837,6 +1847,62 @@ fn spoiled_cells(weights: &[f64], sums: &[[f64; 2]]) -> usize {
 fn whole_cells(sums: &[[f64; 2]]) -> impl Fn(usize) -> bool + '_ {
     let largest = sums.iter().map(|s| s[1]).fold(0.0, f64::max);
     move |i| sums.get(i).is_some_and(|s| s[1] >= 0.5 * largest)
+}
+
+/// The pixels that an outlier covers, from a sweep's `residuals` (row-major, `width` per row,
+/// NaN where the sweep did not go): each pixel whose residual reaches the biweight's `cutoff`
+/// (weight 0 already), grown by hysteresis, as Canny grows edges (Canny 1986), into the
+/// 8-connected pixels `j` whose residual exceeds `edge(j)` in magnitude. The biweight gives the
+/// soft, blurred edge of a hair or of dust almost full weight; that edge is not point-symmetric
+/// about the dots it crosses and pulls their centres.
+fn outlier_extents(
+    residuals: &[f32],
+    width: usize,
+    cutoff: f32,
+    edge: impl Fn(usize) -> f32,
+) -> Vec<bool> {
+    let height = residuals.len() / width.max(1);
+    let mut grown: Vec<bool> = residuals.iter().map(|r| r.abs() >= cutoff).collect();
+    let mut stack: Vec<usize> = (0..grown.len()).filter(|&i| grown[i]).collect();
+    while let Some(i) = stack.pop() {
+        let (row, col) = (i / width, i % width);
+        for r in row.saturating_sub(1)..=(row + 1).min(height - 1) {
+            for c in col.saturating_sub(1)..=(col + 1).min(width - 1) {
+                let j = r * width + c;
+                // NaN (not visited) never passes.
+                if !grown[j] && residuals[j].abs() > edge(j) {
+                    grown[j] = true;
+                    stack.push(j);
+                }
+            }
+        }
+    }
+    grown
+}
+
+/// The frozen weights of `step`, the freezing sweep, with the pixels that its outliers cover
+/// ([`outlier_extents`]) at 0: a pixel joins an outlier where its residual exceeds
+/// [`OUTLIER_EDGE`] times the local scale, the larger of the residual's robust σ and the
+/// typical RMS of the cells around its own ([`local_residual_scale`]). Smooth model error (a
+/// tilt, vignetting) raises the local scale with it and does not grow.
+fn frozen_weights(step: &mut Step, cutoff: Option<f64>, mask: &NodeMask, width: usize) -> Vec<f32> {
+    let mut weights = std::mem::take(&mut step.frozen);
+    let Some(cutoff) = cutoff else {
+        return weights;
+    };
+    let scale = local_residual_scale(&step.cells, mask.dims).unwrap_or_default();
+    let edge = |j: usize| {
+        let local = step
+            .frozen_cells
+            .get(j)
+            .and_then(|&c| scale.get(c as usize));
+        (OUTLIER_EDGE * local.copied().unwrap_or(0.0).max(step.residual_std)) as f32
+    };
+    let outliers = outlier_extents(&step.frozen_residuals, width, cutoff as f32, edge);
+    for (w, _) in weights.iter_mut().zip(outliers).filter(|(_, o)| *o) {
+        *w = 0.0;
+    }
+    weights
 }
 
 /// Sets the biweight's cut-off and the cells' weights from the residuals of `step`'s sweep.
@@ -2125,6 +2191,11 @@ struct Step {
     cells: Vec<[f64; 2]>,
     /// The pixels' robust weights of this iteration, when asked to freeze them.
     frozen: Vec<f32>,
+    /// With them, each pixel's residual (NaN where the sweep did not go) and cell (the
+    /// index of its nearest node in per-node arrays, `u32::MAX` outside the mask), row-major
+    /// over the box.
+    frozen_residuals: Vec<f32>,
+    frozen_cells: Vec<u32>,
     /// Centroid `(X̄, Ȳ)` of the demodulation's weights (normalised coordinates): where the
     /// harmonics' corrections are measured.
     centroid: [f64; 2],
@@ -2154,6 +2225,8 @@ fn iterate(
     } else {
         Vec::new()
     };
+    let mut frozen_residuals = vec![f32::NAN; frozen.len()];
+    let mut frozen_cells = vec![u32::MAX; frozen.len()];
     // The tilt is probed on the fixed problem of frozen weights, where the fit converges.
     let tilt_centre = goal.tilt_centre.filter(|_| !model.frozen.is_empty());
     let mut equations = match tilt_centre {
@@ -2180,6 +2253,13 @@ fn iterate(
         };
         if let Some(slot) = frozen.get_mut(p.index) {
             *slot = robust as f32;
+            if let (Some(q), Some(c)) = (
+                frozen_residuals.get_mut(p.index),
+                frozen_cells.get_mut(p.index),
+            ) {
+                *q = r as f32;
+                *c = p.cell.map_or(u32::MAX, |c| c as u32);
+            }
         }
         pixels += 1;
         sum_layout += p.layout;
@@ -2289,6 +2369,8 @@ fn iterate(
         pixels,
         cells,
         frozen,
+        frozen_residuals,
+        frozen_cells,
         centroid: [sum_wx / sum_w, sum_wy / sum_w],
         amplitude_variance: 2.0 * residual_variance.max(noise_variance) * sum_w2 / (sum_w * sum_w),
     })
@@ -2302,10 +2384,37 @@ fn iterate(
 /// field (vignetting, a slow change of focus) does not. `sums` holds `(Σ w_L·r², Σ w_L)` per
 /// node of a `dims` mask.
 fn cell_weights(sums: &[[f64; 2]], dims: (usize, usize)) -> Vec<f64> {
-    let rms: Vec<f64> = sums
-        .iter()
+    let rms = cell_rms(sums);
+    let Some(typical) = local_residual_scale(sums, dims) else {
+        return vec![1.0; sums.len()];
+    };
+    (0..rms.len())
+        .map(|i| {
+            let t = rms[i] / typical[i].max(f64::MIN_POSITIVE);
+            if t <= CELL_FULL {
+                1.0
+            } else if t >= CELL_ZERO {
+                0.0
+            } else {
+                let c = (0.5 * PI * (t - CELL_FULL) / (CELL_ZERO - CELL_FULL)).cos();
+                c * c
+            }
+        })
+        .collect()
+}
+
+/// RMS residual of each cell (`sums`: `(Σ w_L·r², Σ w_L)` per node; 0 where it has no weight).
+fn cell_rms(sums: &[[f64; 2]]) -> Vec<f64> {
+    sums.iter()
         .map(|&[r2, w]| if w > 0.0 { (r2 / w).sqrt() } else { 0.0 })
-        .collect();
+        .collect()
+}
+
+/// The typical RMS residual around each cell ([`cell_weights`]): the median over the whole
+/// cells within [`CELL_NEIGHBOURHOOD`] nodes, at most `CELL_FULL` times the field's median
+/// (the field's median where fewer than 9 are whole). `None` where the field's median is 0.
+fn local_residual_scale(sums: &[[f64; 2]], dims: (usize, usize)) -> Option<Vec<f64>> {
+    let rms = cell_rms(sums);
     let full = whole_cells(sums);
     let mut all: Vec<f64> = (0..rms.len())
         .filter(|&i| full(i))
@@ -2313,12 +2422,12 @@ fn cell_weights(sums: &[[f64; 2]], dims: (usize, usize)) -> Vec<f64> {
         .collect();
     let global = median(&mut all).unwrap_or(0.0);
     if global <= 0.0 {
-        return vec![1.0; sums.len()];
+        return None;
     }
     let reach = CELL_NEIGHBOURHOOD as i64;
     let (n1, n2) = (dims.0 as i64, dims.1 as i64);
     let mut local = Vec::new();
-    (0..rms.len())
+    let scale = (0..rms.len())
         .map(|i| {
             let (a, b) = ((i / dims.1.max(1)) as i64, (i % dims.1.max(1)) as i64);
             local.clear();
@@ -2333,22 +2442,14 @@ fn cell_weights(sums: &[[f64; 2]], dims: (usize, usize)) -> Vec<f64> {
                     }
                 }
             }
-            let typical = if local.len() >= 9 {
+            if local.len() >= 9 {
                 median(&mut local).unwrap_or(global).min(CELL_FULL * global)
             } else {
                 global
-            };
-            let t = rms[i] / typical.max(f64::MIN_POSITIVE);
-            if t <= CELL_FULL {
-                1.0
-            } else if t >= CELL_ZERO {
-                0.0
-            } else {
-                let c = (0.5 * PI * (t - CELL_FULL) / (CELL_ZERO - CELL_FULL)).cos();
-                c * c
             }
         })
-        .collect()
+        .collect();
+    Some(scale)
 }
 
 #[cfg(test)]
@@ -2551,13 +2652,33 @@ mod tests {
         }
         let mask = dots(5, &[(0, 0)]);
         let fit = fit_dot_field(&image, truth, &mask).unwrap();
-        // Noise-free, the blotch's sharp rim is the only misfit left, and it is enough to make
-        // the harmonics' phases significantly inconsistent: the offsets follow the
-        // fundamentals alone (free phases), 2.3e-5 and 8.8e-5 rad off (1.5e-4 px at most),
-        // where tied harmonics, which outvote the fundamentals, gave 1e-5 rad.
-        assert!(!fit.harmonics_tied);
-        assert_planes(&fit, &truth, 1.5e-4, 1e-7);
+        // Noise-free, the blotch's rim (the pixels beside it that the biweight keeps, whose
+        // residual still stands out) goes with it (`outlier_extents`): nothing is left to
+        // make the harmonics' phases inconsistent, they are tied, and the offsets are 5.6e-8
+        // and 4.3e-7 rad off. With the rim kept, the phases were inconsistent and the
+        // fundamentals alone were 2.3e-5 and 8.8e-5 rad off.
+        assert!(fit.harmonics_tied);
+        assert_planes(&fit, &truth, 2e-6, 1e-8);
         assert!(fit.inlier_fraction < 0.99, "{}", fit.inlier_fraction);
+    }
+
+    #[test]
+    fn an_outlier_grows_along_its_edge_and_nowhere_else() {
+        // 6 × 4 residuals: a rejected core (9), its edge (4, 3.5) above the threshold 3, a
+        // pixel above it but not joined to the core, and a pixel the sweep did not visit.
+        let nan = f32::NAN;
+        #[rustfmt::skip]
+        let residuals = [
+            0.0, 0.0, 0.0, 0.0, 0.0, 5.0,
+            9.0, -4.0, 3.5, 1.0, 0.0, 0.0,
+            0.0, 0.0, 0.0, 2.9, 0.0, 0.0,
+            nan, 0.0, 0.0, 0.0, 0.0, 0.0,
+        ];
+        let grown = outlier_extents(&residuals, 6, 8.0, |_| 3.0);
+        let which: Vec<usize> = (0..grown.len()).filter(|&i| grown[i]).collect();
+        assert_eq!(which, [6, 7, 8]);
+        // Every pixel is an edge where nothing reaches the cut-off: none grows.
+        assert!(!outlier_extents(&residuals, 6, 10.0, |_| 0.0).contains(&true));
     }
 
     #[test]
