@@ -116,8 +116,8 @@ const CELL_ZERO: f64 = 4.0;
 /// A pixel joined (8-connected) to one the biweight rejects, whose residual exceeds this many
 /// times the residual's local scale, belongs to the same outlier: the soft or blurred edge of
 /// dust, a hair or a scratch, below the cut-off yet far from the dots' model
-/// ([`FieldBox::outlier_extents`]). Pure noise passes it once in 370 pixels, so a rejection
-/// grows through noise by hardly a pixel.
+/// ([`outlier_extents`], [`frozen_weights`]). Pure noise passes it once in 370 pixels, so a
+/// rejection grows through noise by hardly a pixel.
 const OUTLIER_EDGE: f64 = 3.0;
 /// Half-width of the neighbourhood a cell's residual is compared with, nodes (a 7 × 7 block:
 /// a dust spot or a hair covers a minority of it).
@@ -1861,17 +1861,19 @@ fn outlier_extents(
     cutoff: f32,
     edge: impl Fn(usize) -> f32,
 ) -> Vec<bool> {
-    let height = residuals.len() / width.max(1);
+    let width = width.max(1);
+    let last_row = (residuals.len() / width).saturating_sub(1);
     let mut grown: Vec<bool> = residuals.iter().map(|r| r.abs() >= cutoff).collect();
     let mut stack: Vec<usize> = (0..grown.len()).filter(|&i| grown[i]).collect();
     while let Some(i) = stack.pop() {
         let (row, col) = (i / width, i % width);
-        for r in row.saturating_sub(1)..=(row + 1).min(height - 1) {
+        for r in row.saturating_sub(1)..=(row + 1).min(last_row) {
             for c in col.saturating_sub(1)..=(col + 1).min(width - 1) {
                 let j = r * width + c;
                 // NaN (not visited) never passes.
-                if !grown[j] && residuals[j].abs() > edge(j) {
-                    grown[j] = true;
+                let joins = residuals.get(j).is_some_and(|v| v.abs() > edge(j));
+                if let Some(g) = grown.get_mut(j).filter(|g| !**g && joins) {
+                    *g = true;
                     stack.push(j);
                 }
             }
