@@ -1871,9 +1871,9 @@ fn outlier_extents(
             for c in col.saturating_sub(1)..=(col + 1).min(width - 1) {
                 let j = r * width + c;
                 // NaN (not visited) never passes.
-                let joins = residuals.get(j).is_some_and(|v| v.abs() > edge(j));
-                if let Some(g) = grown.get_mut(j).filter(|g| !**g && joins) {
-                    *g = true;
+                let free = grown.get(j) == Some(&false);
+                if free && residuals.get(j).is_some_and(|v| v.abs() > edge(j)) {
+                    grown[j] = true;
                     stack.push(j);
                 }
             }
@@ -1892,7 +1892,8 @@ fn frozen_weights(step: &mut Step, cutoff: Option<f64>, mask: &NodeMask, width: 
     let Some(cutoff) = cutoff else {
         return weights;
     };
-    let scale = local_residual_scale(&step.cells, mask.dims).unwrap_or_default();
+    let scale = local_residual_scale(&step.cells, &cell_rms(&step.cells), mask.dims);
+    let scale = scale.unwrap_or_default();
     let edge = |j: usize| {
         let local = step
             .frozen_cells
@@ -2387,7 +2388,7 @@ fn iterate(
 /// node of a `dims` mask.
 fn cell_weights(sums: &[[f64; 2]], dims: (usize, usize)) -> Vec<f64> {
     let rms = cell_rms(sums);
-    let Some(typical) = local_residual_scale(sums, dims) else {
+    let Some(typical) = local_residual_scale(sums, &rms, dims) else {
         return vec![1.0; sums.len()];
     };
     (0..rms.len())
@@ -2414,9 +2415,9 @@ fn cell_rms(sums: &[[f64; 2]]) -> Vec<f64> {
 
 /// The typical RMS residual around each cell ([`cell_weights`]): the median over the whole
 /// cells within [`CELL_NEIGHBOURHOOD`] nodes, at most `CELL_FULL` times the field's median
-/// (the field's median where fewer than 9 are whole). `None` where the field's median is 0.
-fn local_residual_scale(sums: &[[f64; 2]], dims: (usize, usize)) -> Option<Vec<f64>> {
-    let rms = cell_rms(sums);
+/// (the field's median where fewer than 9 are whole); `rms` is [`cell_rms`] of `sums`. `None`
+/// where the field's median is 0.
+fn local_residual_scale(sums: &[[f64; 2]], rms: &[f64], dims: (usize, usize)) -> Option<Vec<f64>> {
     let full = whole_cells(sums);
     let mut all: Vec<f64> = (0..rms.len())
         .filter(|&i| full(i))
