@@ -13,7 +13,9 @@ use super::grouping::FinderTriple;
 use super::marker_id::DotGrid;
 use crate::grey_image::GreyImage;
 use crate::layout::HpCodeLayout;
-use crate::phase::{fit_dot_field_against, wrap_to_pi, FieldFit, NodeMask, PhasePlane, Rival};
+use crate::phase::{
+    fit_dot_field_against, wrap_to_pi, FieldFit, NodeMask, PhasePlane, Rival, TiltStart,
+};
 use nalgebra::{Matrix2, Vector2};
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
@@ -237,7 +239,10 @@ pub(crate) fn refine_on_field(
         [plane(0), plane(1)],
         &mask,
         Some(rival),
-        Some([h, h]),
+        Some(TiltStart {
+            centre: [h, h],
+            perspective: dots.perspective,
+        }),
     )?;
     let [px, py] = fit.planes;
     let gradients = Matrix2::new(px.a, px.b, py.a, py.b);

@@ -48,11 +48,11 @@ use crate::layout::BitmapLayout;
 use crate::parallel;
 use crate::phase::{
     fit_dot_field_against, wrap_angle, FieldFit, NodeMask, PhaseAnalysis, PhaseEngine, PhaseParams,
-    PhasePlane, Rival, MIN_IMAGE_SIDE,
+    PhasePlane, Rival, TiltStart, MIN_IMAGE_SIDE,
 };
 use crate::pose::Pose;
 use matching::{best_match, Match, SearchRange, Template};
-use nalgebra::{Matrix3, Vector2};
+use nalgebra::{Matrix2, Matrix3, Vector2};
 use quads::{Candidate, QuadFinder};
 use std::f64::consts::{PI, TAU};
 
@@ -983,7 +983,15 @@ impl StampDetector {
         // The stamp's origin, the pose's, is node o/2: the fit measures the tilt about it.
         let centre = [o[0] as f64 / 2.0, o[1] as f64 / 2.0];
         let start = planes.map(|p| moved(&p, 1.0));
-        let fit = fit_dot_field_against(image, start, &mask, Some(rival), Some(centre))?;
+        let perspective = reading
+            .frame
+            .as_ref()
+            .and_then(|outline| self.outline_perspective(found, planes, origin, outline, centre));
+        let tilt = TiltStart {
+            centre,
+            perspective: perspective.unwrap_or_default(),
+        };
+        let fit = fit_dot_field_against(image, start, &mask, Some(rival), Some(tilt))?;
         Some((fit.planes.map(|p| moved(&p, -1.0)), fit))
     }
 
@@ -1140,22 +1148,77 @@ impl StampDetector {
         planes: &[PhasePlane; 2],
         plane_origin: Vector2<f64>,
     ) -> Option<Quad> {
-        let half = self.templates.get(found.bitmap)?.half;
-        // Outer edges: half a cell beyond the outermost cell centres.
-        let (hx, hy) = (half[0] as f64 + 0.5, half[1] as f64 + 0.5);
         let mut corners = [Vector2::zeros(); 4];
-        for (k, (sx, sy)) in [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
-            .into_iter()
-            .enumerate()
-        {
-            let i = found.orientation.inverse_apply([sx * hx, sy * hy]);
-            let cell = [
-                found.origin_cell[0] as f64 + i[0],
-                found.origin_cell[1] as f64 + i[1],
-            ];
-            corners[k] = Self::cell_to_image(planes, plane_origin, cell)?;
+        for (corner, cell) in corners.iter_mut().zip(self.frame_cells(found)?) {
+            *corner = Self::cell_to_image(planes, plane_origin, cell)?;
         }
         Some(Quad { corners })
+    }
+
+    /// The thumbnail cells of the matched bitmap's outer outline's corners (half a cell beyond
+    /// the outermost cell centres).
+    fn frame_cells(&self, found: &Match) -> Option<[[f64; 2]; 4]> {
+        let half = self.templates.get(found.bitmap)?.half;
+        let (hx, hy) = (half[0] as f64 + 0.5, half[1] as f64 + 0.5);
+        Some(
+            [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].map(|(sx, sy)| {
+                let i = found.orientation.inverse_apply([sx * hx, sy * hy]);
+                [
+                    found.origin_cell[0] as f64 + i[0],
+                    found.origin_cell[1] as f64 + i[1],
+                ]
+            }),
+        )
+    }
+
+    /// The perspective `p` per period about lattice point `centre` (periods; node `k` is
+    /// thumbnail cell `2k`) that the frame's `outline` shows: the homography from lattice
+    /// coordinates to the image that puts the outline's corners where they are, written about
+    /// `centre` as `x_c + J·δ/(1 + p·δ)` (docs/design.md#tilt-centre). Each corner of the
+    /// outline is paired with the nearest of the affine view's (`planes`, frame of
+    /// `plane_origin`): a tilt bends corners by a fraction of a period, far less than the
+    /// outline's side. `None` when the pairing is not one to one or the outline degenerate.
+    fn outline_perspective(
+        &self,
+        found: &Match,
+        planes: &[PhasePlane; 2],
+        plane_origin: Vector2<f64>,
+        outline: &Quad,
+        centre: [f64; 2],
+    ) -> Option<Vector2<f64>> {
+        let cells = self.frame_cells(found)?;
+        let affine = self.predicted_frame(found, planes, plane_origin)?;
+        let mut lattice = [Vector2::zeros(); 4];
+        let mut used = [false; 4];
+        for (l, corner) in lattice.iter_mut().zip(&outline.corners) {
+            let (j, _) = affine.corners.iter().enumerate().min_by(|a, b| {
+                let (da, db) = ((a.1 - corner).norm(), (b.1 - corner).norm());
+                da.total_cmp(&db)
+            })?;
+            if std::mem::replace(used.get_mut(j)?, true) {
+                return None;
+            }
+            let c = cells.get(j)?;
+            *l = Vector2::new(c[0] / 2.0, c[1] / 2.0);
+        }
+        // The unit square onto the outline, after the lattice onto the unit square (affine:
+        // the outline is a rectangle of the lattice).
+        let square = quads::square_to_quad(&outline.corners)?;
+        let axes = Matrix2::from_columns(&[lattice[1] - lattice[0], lattice[3] - lattice[0]]);
+        if (lattice[2] - (lattice[1] + lattice[3] - lattice[0])).norm() > 1e-9 {
+            return None;
+        }
+        let to_square = axes.try_inverse()?;
+        let shift = -(to_square * lattice[0]);
+        let lattice_to_square = quads::affine_matrix(&to_square, shift);
+        let h = square * lattice_to_square;
+        // Row 3 of H at c + δ: s + r·δ, so p = r/s.
+        let (r, s) = (
+            Vector2::new(h[(2, 0)], h[(2, 1)]),
+            h[(2, 0)] * centre[0] + h[(2, 1)] * centre[1] + h[(2, 2)],
+        );
+        let p = r / s;
+        p.iter().all(|v| v.is_finite()).then_some(p)
     }
 
     /// Pose and bookkeeping of a match.

@@ -159,18 +159,7 @@ impl Quad {
         // A⁻¹(x) = (0.5, 0.5) + J⁻¹·(x − m), as a 3×3 matrix.
         let j_inv = Matrix2::new(du.x, dv.x, du.y, dv.y).try_inverse()?;
         let t = Vector2::new(0.5, 0.5) - j_inv * m;
-        let a_inv = Matrix3::new(
-            j_inv[(0, 0)],
-            j_inv[(0, 1)],
-            t.x,
-            j_inv[(1, 0)],
-            j_inv[(1, 1)],
-            t.y,
-            0.0,
-            0.0,
-            1.0,
-        );
-        Some(h * a_inv)
+        Some(h * affine_matrix(&j_inv, t))
     }
 
     /// The sides re-fitted to the outer edge of a frame of `polarity` (bright: brighter than
@@ -275,9 +264,17 @@ impl Quad {
     }
 }
 
+/// The affine map `x ↦ linear·x + shift` as a 3×3 matrix of homogeneous coordinates.
+pub(crate) fn affine_matrix(linear: &Matrix2<f64>, shift: Vector2<f64>) -> Matrix3<f64> {
+    let mut m = Matrix3::identity();
+    m.fixed_view_mut::<2, 2>(0, 0).copy_from(linear);
+    m.fixed_view_mut::<2, 1>(0, 2).copy_from(&shift);
+    m
+}
+
 /// The homography taking the unit square's corners `(0,0), (1,0), (1,1), (0,1)` to `corners`
 /// (Heckbert's square-to-quad mapping); `None` when three corners are collinear.
-fn square_to_quad(corners: &[Vector2<f64>; 4]) -> Option<Matrix3<f64>> {
+pub(crate) fn square_to_quad(corners: &[Vector2<f64>; 4]) -> Option<Matrix3<f64>> {
     let [p0, p1, p2, p3] = *corners;
     let s = p0 - p1 + p2 - p3;
     let (d1, d2) = (p1 - p2, p3 - p2);
