@@ -539,7 +539,7 @@ pub struct FieldFit {
     /// Field centre `(x₀, y₀)` (image frame) and half-size `s` of the normalised coordinates.
     frame: (f64, f64, f64),
     /// The field's perspective `p` per period, measured about the centre the caller gave
-    /// ([`fit_dot_field_against`]'s `tilt_centre`; `None` when not asked, or not measurable):
+    /// ([`fit_dot_field_against`]'s `tilt`; `None` when not asked, or not measurable):
     /// lattice coordinates `u = v/(1 − p·v)`, `v` linear in the image
     /// (docs/design.md#tilt-centre).
     pub perspective: Option<Vector2<f64>>,
@@ -1370,7 +1370,7 @@ struct FieldPixels<'a> {
 impl FieldPixels<'_> {
     /// Sets the phases of a warped field exactly at image-frame `(x, y)` (the current column),
     /// with their step to the next column and its turn per column, from the phases at the next
-    /// two columns.
+    /// two columns; leaves them as they are where the warp does not reach those columns.
     #[inline(always)]
     fn set_exact(&mut self, warp: &Warp, x: f64, y: f64) {
         let phase = |dx: f64| {
@@ -1379,6 +1379,10 @@ impl FieldPixels<'_> {
                 .map_or([f64::NAN; 2], |(u, _, _)| u.map(|u| TAU * u))
         };
         let (p0, p1, p2) = (phase(0.0), phase(1.0), phase(2.0));
+        if [p0, p1, p2].iter().flatten().any(|v| !v.is_finite()) {
+            // Beyond the warp's reach ([`Warp::apply`]): tried again at the next column.
+            return;
+        }
         let polar = |v: [f64; 2], k: f64| v.map(|v| Complex64::from_polar(1.0, k * v));
         let step = [p1[0] - p0[0], p1[1] - p0[1]];
         let chirp = [p2[0] - 2.0 * p1[0] + p0[0], p2[1] - 2.0 * p1[1] + p0[1]];
@@ -1522,10 +1526,12 @@ pub fn fit_dot_field(
 /// times the window's. The fits it returns are those of [`fit_dot_field`] to the
 /// last digit; where it gives up, the fit would have lost to the window anyway (or failed).
 ///
-/// With `tilt_centre` (lattice coordinates of the marker centre, periods, in the numbering of
-/// `start`), the fit also measures the field's tilt about that centre and, where it is
-/// significant, moves the planes to where the tilt leaves them at the centre
-/// ([`FieldFit::perspective`], docs/design.md#tilt-centre).
+/// With `tilt` (the marker centre in lattice coordinates, periods, in the numbering of
+/// `start`, and the coarse step's perspective), the fit also measures the field's tilt about
+/// that centre and, where it is significant, moves the planes to where the tilt leaves them at
+/// the centre; a steep tilt is fitted again with the tilt in the phase model, starting from
+/// the coarse perspective when there is one ([`FieldFit::perspective`],
+/// docs/design.md#tilt-centre).
 pub fn fit_dot_field_against(
     image: &GreyImage,
     start: [PhasePlane; 2],
