@@ -898,36 +898,18 @@ impl HarmonicBank {
     #[inline(always)]
     fn seed(&mut self, z: &[Complex64; 2]) {
         self.flush_row();
-        let (mut re, mut im) = (self.re, self.im);
-        self.exponentials(z, &mut re, &mut im);
-        (self.re, self.im) = (re, im);
-    }
-
-    /// `e^{ih·φ}` of every harmonic, `z` being `e^{iφ_l}`, into `(re, im)`.
-    #[inline(always)]
-    fn exponentials(&self, z: &[Complex64; 2], re: &mut [f32; BANK], im: &mut [f32; BANK]) {
-        let powers = powers(z);
-        for k in 0..self.n {
-            let (h1, h2) = self.orders[k];
-            let e = harmonic(&powers, h1, h2);
-            re[k] = e.re as f32;
-            im[k] = e.im as f32;
-        }
+        exponentials(&self.orders[..self.n], z, &mut self.re, &mut self.im);
     }
 
     /// A warped field's bank at pixel `p`: its exponentials, their steps to the next column
     /// and the steps' turn per column, computed afresh.
     #[inline(always)]
     fn seed_warped(&mut self, p: &Pixel) {
-        let mut e = (self.re, self.im);
-        self.exponentials(&p.z, &mut e.0, &mut e.1);
-        let mut step = (self.step_re, self.step_im);
-        self.exponentials(&p.step, &mut step.0, &mut step.1);
-        let mut chirp = ([0.0; BANK], [0.0; BANK]);
-        self.exponentials(&p.chirp, &mut chirp.0, &mut chirp.1);
-        (self.re, self.im) = e;
-        (self.step_re, self.step_im) = step;
-        self.chirp = Some([chirp.0, chirp.1]);
+        let orders = &self.orders[..self.n];
+        exponentials(orders, &p.z, &mut self.re, &mut self.im);
+        exponentials(orders, &p.step, &mut self.step_re, &mut self.step_im);
+        let [cr, ci] = self.chirp.get_or_insert([[0.0; BANK]; 2]);
+        exponentials(orders, &p.chirp, cr, ci);
     }
 
     /// Exponentials at pixel `p`: advanced from the previous pixel of its row when it is a
@@ -1145,6 +1127,17 @@ fn powers(z: &[Complex64; 2]) -> Powers {
         }
         p
     })
+}
+
+/// `e^{ih·φ}` of each harmonic of `orders`, `z` being `e^{iφ_l}`, into `(re, im)`.
+#[inline(always)]
+fn exponentials(orders: &[(i32, i32)], z: &[Complex64; 2], re: &mut [f32], im: &mut [f32]) {
+    let powers = powers(z);
+    for ((&(h1, h2), r), i) in orders.iter().zip(re.iter_mut()).zip(im.iter_mut()) {
+        let e = harmonic(&powers, h1, h2);
+        *r = e.re as f32;
+        *i = e.im as f32;
+    }
 }
 
 /// `e^{i(h₁φ₁ + h₂φ₂)}` from the powers (`|h_l| ≤ MAX_ORDER`).
