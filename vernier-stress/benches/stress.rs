@@ -6,7 +6,8 @@
 //! ```
 //!
 //! Prints progress on stderr, then per family a Markdown table (one row per degradation
-//! category), the failing seeds and the generation-time profile. `--only SEED` runs one scene
+//! category) and, for the rows with sensor noise, each marker's Cramér–Rao bound against its
+//! error (`vernier_stress::bound`), then the failing seeds and the generation-time profile. `--only SEED` runs one scene
 //! and prints its truth, detections and verdicts as JSON; `--dump DIR` writes every failing
 //! scene (or the `--only` scene) as a 16-bit PNG plus a JSON file.
 
@@ -95,7 +96,7 @@ fn main() -> ExitCode {
         }
     };
     let generator = match Generator::from_env() {
-        Ok(g) => g,
+        Ok(g) => g.with_position_bounds(),
         Err(e) => {
             eprintln!("stress: {e}");
             return ExitCode::FAILURE;

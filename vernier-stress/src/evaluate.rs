@@ -63,6 +63,9 @@ pub struct SceneResult {
     /// Position errors of the found markers over their predicted σ (see
     /// [`Verdict::Found::predicted_std_px`]), where that σ is positive and finite.
     pub normalised_errors: Vec<f64>,
+    /// `(position error, its Cramér–Rao bound)` of the found markers that have a bound
+    /// ([`TruthMarker::position_bound_px`]), pixels.
+    pub bounded_errors: Vec<(f64, f64)>,
     /// One verdict per detection.
     pub verdicts: Vec<Verdict>,
     /// Detector error or panic message, if detection failed.
@@ -110,6 +113,7 @@ pub fn evaluate(
                 position_errors: Vec::new(),
                 angle_errors: Vec::new(),
                 normalised_errors: Vec::new(),
+                bounded_errors: Vec::new(),
                 verdicts: Vec::new(),
                 error: Some(e),
                 detect_ms,
@@ -169,6 +173,7 @@ pub fn evaluate(
         position_errors: Vec::new(),
         angle_errors: Vec::new(),
         normalised_errors: Vec::new(),
+        bounded_errors: Vec::new(),
         verdicts,
         error: None,
         detect_ms,
@@ -176,11 +181,14 @@ pub fn evaluate(
     for v in &r.verdicts {
         match *v {
             Verdict::Found {
+                truth: ti,
                 position_error,
                 angle_error,
                 predicted_std_px,
-                ..
             } => {
+                if let Some(b) = truth.get(ti).and_then(|t| t.position_bound_px) {
+                    r.bounded_errors.push((position_error, b));
+                }
                 r.found += 1;
                 r.position_errors.push(position_error);
                 r.angle_errors.push(angle_error);

@@ -7,6 +7,7 @@
 //!
 //! * [`scene`]: seeds → scenes (image + truth); [`markers`]: families and truth convention;
 //! * [`degrade`], [`clutter`], [`raster`], [`geometry`]: how the images are made;
+//! * [`bound`]: the Cramér–Rao bound of a marker's position on noisy scenes;
 //! * [`evaluate`]: matching detections to the truth; [`suite`]: running and tallying many
 //!   scenes; [`dump`]: writing a scene for inspection; [`data`]: the shared data folder.
 //!
@@ -33,6 +34,7 @@
 //! * Detector settings: exactly what a CLI user gives (`--hpcode --period 10 --code-size W`
 //!   or `--stamp --period 10 --bitmap …` ×4), nothing tuned per scene.
 
+pub mod bound;
 pub mod clutter;
 pub mod data;
 pub mod degrade;

@@ -269,6 +269,7 @@ impl Placed {
             period_px: self.period_px() * scale,
             mirrored: self.mirrored,
             expectation: self.expectation,
+            position_bound_px: None,
         })
     }
 }
@@ -295,4 +296,7 @@ pub struct TruthMarker {
     pub mirrored: bool,
     /// What the detector should do with it.
     pub expectation: Expectation,
+    /// Cramér–Rao bound of its origin's radial error, pixels ([`crate::bound`]), where the
+    /// scene has one.
+    pub position_bound_px: Option<f64>,
 }

@@ -10,6 +10,7 @@
 //! contrast) → dust and hair on the sample → perspective warp → illumination → sensor (colour
 //! cast, noise) → file (JPEG or quantisation).
 
+use crate::bound;
 use crate::clutter::Clutter;
 use crate::data::StampSet;
 use crate::degrade::{apply_illumination, finish, log_uniform, Degradation, Degradations};
@@ -174,6 +175,9 @@ pub struct Generator {
     stamps: StampSet,
     /// Share of HP codes seen from the back ([`MIRRORED_FRACTION`] by default).
     mirrored_fraction: f64,
+    /// Compute each marker's Cramér–Rao bound where the scene has one (off by default: it
+    /// costs eight renders of the marker).
+    position_bounds: bool,
 }
 
 /// Where things may go: image size, homography, what is already placed.
@@ -229,7 +233,18 @@ impl Generator {
         Ok(Generator {
             stamps: StampSet::load(data_dir, PERIOD)?,
             mirrored_fraction: MIRRORED_FRACTION,
+            position_bounds: false,
         })
+    }
+
+    /// The same generator, also computing the Cramér–Rao bound of each marker's position
+    /// where the scene has one ([`bound::applies`]; [`TruthMarker::position_bound_px`]). The
+    /// scenes are the same: the bound draws nothing.
+    pub fn with_position_bounds(self) -> Self {
+        Generator {
+            position_bounds: true,
+            ..self
+        }
     }
 
     /// The same generator drawing no marker seen from the back: the scenes as they were
@@ -362,13 +377,22 @@ impl Generator {
             apply_illumination(&mut plane, illum);
             lap("illumination", &mut timings);
         }
+        let bounds = self.position_bounds(&spec, &layout, &deg, &plane, fg - bg)?;
+        if bounds.iter().any(Option::is_some) {
+            lap("bound", &mut timings);
+        }
         let image = finish(&plane, &deg, &mut rng)?;
         lap("sensor", &mut timings);
         let truth = layout
             .markers
             .iter()
-            .map(|m| {
+            .zip(bounds)
+            .map(|(m, bound)| {
                 m.truth(&layout.homography)
+                    .map(|t| TruthMarker {
+                        position_bound_px: bound,
+                        ..t
+                    })
                     .ok_or_else(|| StressError::new("marker beyond the horizon"))
             })
             .collect::<Result<Vec<_>>>()?;
@@ -382,6 +406,45 @@ impl Generator {
             notes,
             timings,
         })
+    }
+
+    /// The position bound of each expected marker of the scene's family, where the scene
+    /// has one ([`bound::applies`]); `clean` is the image before noise, `contrast` the dots'
+    /// grey level minus the background's.
+    fn position_bounds(
+        &self,
+        spec: &SceneSpec,
+        layout: &Layout,
+        deg: &Degradations,
+        clean: &Plane,
+        contrast: f64,
+    ) -> Result<Vec<Option<f64>>> {
+        let noise = match deg.noise {
+            Some(noise) if self.position_bounds && bound::applies(deg) => noise,
+            _ => return Ok(vec![None; layout.markers.len()]),
+        };
+        let gain = deg.illumination.map(|illum| {
+            let mut g = Plane::filled(clean.width, clean.height, 1.0);
+            apply_illumination(&mut g, &illum);
+            g
+        });
+        let formation = bound::Formation {
+            clean,
+            gain: gain.as_ref(),
+            contrast,
+            blur_sigma: deg.blur_sigma,
+            noise,
+        };
+        layout
+            .markers
+            .iter()
+            .map(|m| {
+                if m.expectation != Expectation::Expected || m.kind.family() != spec.family {
+                    return Ok(None);
+                }
+                bound::position_bound(m.kind.layout(&self.stamps)?.as_ref(), m, &formation)
+            })
+            .collect()
     }
 
     /// Image size, homography and the 1–3 markers of the scene's family (same scale, random

@@ -20,10 +20,10 @@
 //! * **Which model.** `g = μ + μ_X·X + μ_Y·Y + Σ_l (B_l + E_l·X + F_l·Y)·cos φ_l +
 //!   (1 + η_X·X + η_Y·Y)·Σ_h A_h·cos(h·φ)`: background, fundamental amplitudes and the
 //!   harmonics' gain with linear trends (illumination), and every dot harmonic `h` up to order
-//!   `MAX_ORDER` (5) per axis whose amplitude reaches `MIN_HARMONIC` (1e-3) of the
-//!   fundamental. Each harmonic first has a free complex amplitude: its phase relative to the
-//!   fundamentals' is the dots' shape, whatever it is, and the offsets follow the
-//!   fundamentals alone. Point-symmetric dots (sharp, blurred or pixel-integrated dots of any
+//!   `MAX_ORDER` (8; 5 where the pixel grid folds them) per axis whose amplitude reaches
+//!   `MIN_HARMONIC` (1e-3) of the fundamental. Each harmonic first has a free complex
+//!   amplitude: its phase relative to the fundamentals' is the dots' shape, whatever it is,
+//!   and the offsets follow the fundamentals alone. Point-symmetric dots (sharp, blurred or pixel-integrated dots of any
 //!   round or square shape) have every harmonic in phase with the dot centres; where the
 //!   free fit's phases are consistent with that (Hausman's test, `symmetric_shift`), the
 //!   harmonics are then *tied* to the dot centres, real amplitudes, and every harmonic
@@ -92,8 +92,15 @@ use std::f64::consts::{PI, SQRT_2, TAU};
 
 /// Highest harmonic order modelled along each lattice axis: the dots' harmonics
 /// `e^{i(h₁φ₁ + h₂φ₂)}` with `|h₁|, |h₂| ≤ MAX_ORDER` (sharp, pixel-integrated dots have ~15 %
-/// of the fundamental up to order 3).
-const MAX_ORDER: usize = 5;
+/// of the fundamental up to order 3, and sharp dots 30–40 px wide still a few percent at order
+/// 8: left out, they biased such markers by 10–15× their Cramér–Rao bound). Orders above
+/// [`MAX_FOLDED_ORDER`] are modelled only where the pixel grid sees them unfolded.
+const MAX_ORDER: usize = 8;
+/// Highest harmonic order modelled where the pixel grid folds the harmonic (its wave vector
+/// beyond the Nyquist square: unbinned fields, 4–12 px per period): folded orders 6–8 land
+/// among the modelled ones as fine dot detail the sampling has already scrambled, and moved
+/// clean 5-px markers by up to 1.6e-3 px (stress suite).
+const MAX_FOLDED_ORDER: i32 = 5;
 /// Harmonics whose amplitude is below this fraction of the fundamental are left out of the
 /// iterations (their leakage into the slopes is then below ~2e-5 rad of phase at the field's
 /// edge): blurred images keep a few, sharp ones a few dozen.
@@ -653,6 +660,7 @@ fn all_harmonics() -> Vec<(i32, i32)> {
 /// On an `unaliased` grid (anti-aliased binning, [`crate::decimate`]) nothing folds: a
 /// harmonic beyond the Nyquist square is gone from the image, and one is kept only while it
 /// stays half the separation inside the square (that far from its own conjugate's fold).
+/// On any grid, a harmonic of order above [`MAX_FOLDED_ORDER`] is kept only on those terms.
 fn resolvable_harmonics(planes: &[PhasePlane; 2], side: f64, unaliased: bool) -> Vec<(i32, i32)> {
     let mut candidates = all_harmonics();
     candidates.sort_by_key(|&(a, b)| (a.abs().max(b.abs()), a.abs() + b.abs()));
@@ -671,7 +679,8 @@ fn resolvable_harmonics(planes: &[PhasePlane; 2], side: f64, unaliased: bool) ->
     let mut taken = vec![[0.0, 0.0], wave((1, 0)), wave((0, 1))];
     let mut kept = Vec::new();
     for h in candidates {
-        if unaliased && !inside(h) {
+        let high_order = h.0.abs().max(h.1.abs()) > MAX_FOLDED_ORDER;
+        if (unaliased || high_order) && !inside(h) {
             continue;
         }
         let k = wave(h);
@@ -777,6 +786,8 @@ struct HarmonicBank {
     n: usize,
     /// `n` rounded up to whole lanes: the loops' length.
     padded: usize,
+    /// Highest order of the harmonics along either axis ([`top_order`]).
+    top: usize,
     orders: [(i32, i32); BANK],
     re: [f32; BANK],
     im: [f32; BANK],
@@ -816,13 +827,16 @@ impl Default for RowSums {
 }
 
 impl RowSums {
-    /// Adds the current row's sums of the first `n` harmonics to the totals and clears them.
+    /// Adds the current row's sums of the first `n` harmonics to the totals and clears them
+    /// (the lanes up to `n` rounded up to whole [`LANES`]: all the sweep writes; a bank sized
+    /// for the highest orders is cleared only as far as its harmonics reach).
     fn flush_row(&mut self, n: usize) {
+        let written = (n.div_ceil(LANES) * LANES).min(BANK);
         for (total, row) in self.total.iter_mut().zip(&mut self.row) {
             for (t, r) in total[..n].iter_mut().zip(&row[..n]) {
                 *t += *r as f64;
             }
-            *row = [0.0; BANK];
+            row[..written].fill(0.0);
         }
     }
 
@@ -861,6 +875,7 @@ impl HarmonicBank {
         let mut bank = HarmonicBank {
             n,
             padded: n.div_ceil(LANES) * LANES,
+            top: 1,
             orders: [(0, 0); BANK],
             re: zero,
             im: zero,
@@ -890,6 +905,7 @@ impl HarmonicBank {
             bank.slope2_re[k] = (h2f * a.re) as f32;
             bank.slope2_im[k] = (h2f * a.im) as f32;
         }
+        bank.top = top_order(&bank.orders[..n]);
         bank
     }
 
@@ -898,7 +914,13 @@ impl HarmonicBank {
     #[inline(always)]
     fn seed(&mut self, z: &[Complex64; 2]) {
         self.flush_row();
-        exponentials(&self.orders[..self.n], z, &mut self.re, &mut self.im);
+        exponentials(
+            &self.orders[..self.n],
+            self.top,
+            z,
+            &mut self.re,
+            &mut self.im,
+        );
     }
 
     /// A warped field's bank at pixel `p`: its exponentials, their steps to the next column
@@ -906,10 +928,11 @@ impl HarmonicBank {
     #[inline(always)]
     fn seed_warped(&mut self, p: &Pixel) {
         let orders = &self.orders[..self.n];
-        exponentials(orders, &p.z, &mut self.re, &mut self.im);
-        exponentials(orders, &p.step, &mut self.step_re, &mut self.step_im);
+        let top = self.top;
+        exponentials(orders, top, &p.z, &mut self.re, &mut self.im);
+        exponentials(orders, top, &p.step, &mut self.step_re, &mut self.step_im);
         let [cr, ci] = self.chirp.get_or_insert([[0.0; BANK]; 2]);
-        exponentials(orders, &p.chirp, cr, ci);
+        exponentials(orders, top, &p.chirp, cr, ci);
     }
 
     /// Exponentials at pixel `p`: advanced from the previous pixel of its row when it is a
@@ -1119,20 +1142,37 @@ impl Model {
 /// `e^{ikφ_l}` for `k = 0..=MAX_ORDER`, per lobe.
 type Powers = [[Complex64; MAX_ORDER + 1]; 2];
 
-fn powers(z: &[Complex64; 2]) -> Powers {
-    z.map(|zl| {
-        let mut p = [Complex64::new(1.0, 0.0); MAX_ORDER + 1];
-        for k in 1..=MAX_ORDER {
-            p[k] = p[k - 1] * zl;
+/// The powers up to order `top` (those above it are left at 1: no harmonic asks for them).
+fn powers(z: &[Complex64; 2], top: usize) -> Powers {
+    let mut p = [[Complex64::new(1.0, 0.0); MAX_ORDER + 1]; 2];
+    for (pl, zl) in p.iter_mut().zip(z) {
+        for k in 1..=top.min(MAX_ORDER) {
+            pl[k] = pl[k - 1] * zl;
         }
-        p
-    })
+    }
+    p
 }
 
-/// `e^{ih·φ}` of each harmonic of `orders`, `z` being `e^{iφ_l}`, into `(re, im)`.
+/// The highest order along either axis among `orders`.
+fn top_order(orders: &[(i32, i32)]) -> usize {
+    orders
+        .iter()
+        .map(|&(h1, h2)| h1.unsigned_abs().max(h2.unsigned_abs()) as usize)
+        .max()
+        .unwrap_or(1)
+}
+
+/// `e^{ih·φ}` of each harmonic of `orders`, `z` being `e^{iφ_l}`, into `(re, im)`; `top`:
+/// at least [`top_order`] of `orders`.
 #[inline(always)]
-fn exponentials(orders: &[(i32, i32)], z: &[Complex64; 2], re: &mut [f32], im: &mut [f32]) {
-    let powers = powers(z);
+fn exponentials(
+    orders: &[(i32, i32)],
+    top: usize,
+    z: &[Complex64; 2],
+    re: &mut [f32],
+    im: &mut [f32],
+) {
+    let powers = powers(z, top);
     for ((&(h1, h2), r), i) in orders.iter().zip(re.iter_mut()).zip(im.iter_mut()) {
         let e = harmonic(&powers, h1, h2);
         *r = e.re as f32;
