@@ -80,7 +80,7 @@
 //! CPU has it. A fit whose steps stop contracting once the weights are frozen is given up at
 //! once rather than run to the iteration limit (it would be refused there).
 
-use super::noise::{quantisation_variance_in, white_noise_variance, NoisePlan};
+use super::noise::{quantisation_variance_in, tilted_white_noise_variance, LatticeTilt, NoisePlan};
 use super::normal_equations::NormalEquations;
 use super::plane::{wrap_to_pi, PhasePlane};
 use super::MIN_NOISE_STD;
@@ -1633,9 +1633,14 @@ pub fn fit_dot_field_against(
     // White noise measured apart from the model (lattice second differences): where the
     // model stops short of the dots' detail (sharp dots many pixels wide), the residual is
     // static model error, which does not scatter the result from frame to frame.
+    // On a tilted field, only where the lattice still matches its planes' near the centre.
     let mut plan = NoisePlan::new(sub.height(), sub.width());
-    let white =
-        white_noise_variance(sub.pixels(), None, &start_sub, &mut plan).map(|v| v.max(rounding));
+    let lattice_tilt = tilt.map(|t| LatticeTilt {
+        centre: t.centre,
+        perspective: [t.perspective.x, t.perspective.y],
+    });
+    let white = tilted_white_noise_variance(sub.pixels(), &start_sub, &mut plan, lattice_tilt)
+        .map(|v| v.max(rounding));
     // The rival's point in the (binned) sub-image frame.
     let rival = rival.map(|r| Rival {
         at: ((r.at.0 - offset[0]) / f, (r.at.1 - offset[1]) / f),
