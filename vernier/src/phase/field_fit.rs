@@ -23,17 +23,16 @@
 //!   `MAX_ORDER` (8; 5 where the pixel grid folds them) per axis whose amplitude reaches
 //!   `MIN_HARMONIC` (1e-3) of the fundamental. Each harmonic first has a free complex
 //!   amplitude: its phase relative to the fundamentals' is the dots' shape, whatever it is,
-//!   and the offsets follow the fundamentals alone. Point-symmetric dots (sharp, blurred or pixel-integrated dots of any
-//!   round or square shape) have every harmonic in phase with the dot centres; where the
-//!   free fit's phases are consistent with that (Hausman's test, `symmetric_shift`), the
-//!   harmonics are then *tied* to the dot centres, real amplitudes, and every harmonic
-//!   informs the offsets as well as the slopes — square dots carry ~80 % more position
-//!   information in their harmonics than in the fundamentals. Where they are not (coma,
-//!   oblique light, the two fabrication layers of a real stamp a little off centre), tying
-//!   would move the offsets to where the harmonics' phases put them, away from the
-//!   fundamentals' (0.016–0.019 px on marker 0 of `Image96`–`105`), and converges only
-//!   linearly, so the phases stay free and the centre is the fundamentals', as the window's
-//!   is (docs/design.md#field-fit).
+//!   and the offsets follow the fundamentals alone. Point-symmetric dots (sharp, blurred or
+//!   pixel-integrated dots of any round or square shape) have every harmonic in phase with
+//!   the dot centres; where the free fit's phases are consistent with that (Hausman's test,
+//!   `symmetric_shift`), the harmonics are then *tied* to the dot centres, real amplitudes,
+//!   and every harmonic informs the offsets as well as the slopes — square dots carry ~80 %
+//!   more position information in their harmonics than in the fundamentals. Where they are not
+//!   (coma, oblique light, the two fabrication layers of a real stamp a little off centre), tying
+//!   would move the offsets to where the harmonics' phases put them, away from the fundamentals'
+//!   (0.016–0.019 px on marker 0 of `Image96`–`105`), and converges only linearly, so the phases
+//!   stay free and the centre is the fundamentals', as the window's is (docs/design.md#field-fit).
 //!   Modelling the harmonics removes their leakage into the planes without any window: every
 //!   pixel counts fully (a flat aperture instead of the engine's sine-cubed one, κ = √12
 //!   instead of 4.85).
@@ -1633,7 +1632,8 @@ pub fn fit_dot_field_against(
     // White noise measured apart from the model (lattice second differences): where the
     // model stops short of the dots' detail (sharp dots many pixels wide), the residual is
     // static model error, which does not scatter the result from frame to frame.
-    // On a tilted field, only where the lattice still matches its planes' near the centre.
+    // On a steeply tilted field, read only where the lattice still matches the planes (near
+    // the tilt's centre): the dots' edges elsewhere would read as noise and hide the tilt.
     let mut plan = NoisePlan::new(sub.height(), sub.width());
     let lattice_tilt = tilt.map(|t| LatticeTilt {
         centre: t.centre,

@@ -360,6 +360,9 @@ fn second_difference_variance(
     plan: &mut NoisePlan,
 ) -> Option<f64> {
     let (rows, cols) = (plan.rows, plan.cols);
+    if pixels.len() != rows * cols || weights.is_some_and(|w| w.len() != rows * cols) {
+        return None;
+    }
     let usable = |i: usize| weights.is_none_or(|w| w[i].is_finite() && w[i] > 0.0);
     // Sample (x, y) is usable when x ± dx and y ± dy stay inside the image.
     let down = dy >= 0;
