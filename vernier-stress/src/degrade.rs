@@ -258,9 +258,23 @@ impl Degradations {
     }
 }
 
-/// Multiplies `plane` by the gain field of `illum` (1 at the brightest point).
+/// Multiplies `plane` by the gain field of `illum` ([`illumination_gain`]).
 pub fn apply_illumination(plane: &mut Plane, illum: &Illumination) {
-    let (w, h) = (plane.width as f64, plane.height as f64);
+    let gain = illumination_gain(plane.width, plane.height, illum);
+    apply_gain(plane, &gain);
+}
+
+/// Multiplies `plane` by `gain` (same size), pixel by pixel.
+pub fn apply_gain(plane: &mut Plane, gain: &Plane) {
+    for (v, g) in plane.data.iter_mut().zip(&gain.data) {
+        *v *= g;
+    }
+}
+
+/// The gain field of `illum` over a `width × height` image: 1 at the brightest point,
+/// `min_gain` at the dimmest pixel.
+pub fn illumination_gain(width: usize, height: usize, illum: &Illumination) -> Plane {
+    let (w, h) = (width as f64, height as f64);
     let (s, c) = illum.direction.sin_cos();
     // Linear fall-off along `direction`, normalised to [0, 1] over the image corners.
     let proj = |x: f64, y: f64| c * x + s * y;
@@ -280,19 +294,20 @@ pub fn apply_illumination(plane: &mut Plane, illum: &Illumination) {
         linear * vignette
     };
     let mut min_raw = f64::INFINITY;
-    for r in 0..plane.height {
-        for col in 0..plane.width {
+    for r in 0..height {
+        for col in 0..width {
             min_raw = min_raw.min(raw(col as f64, r as f64));
         }
     }
     // Rescale the fall-off so that the dimmest pixel gets exactly `min_gain`.
     let k = (1.0 - illum.min_gain) / (1.0 - min_raw).max(1e-9);
-    for r in 0..plane.height {
-        for col in 0..plane.width {
-            let g = 1.0 - k * (1.0 - raw(col as f64, r as f64));
-            plane.data[r * plane.width + col] *= g as f32;
+    let mut gain = Plane::filled(width, height, 1.0);
+    for r in 0..height {
+        for col in 0..width {
+            gain.data[r * width + col] = (1.0 - k * (1.0 - raw(col as f64, r as f64))) as f32;
         }
     }
+    gain
 }
 
 /// Adds sensor noise to one channel.

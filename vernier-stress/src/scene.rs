@@ -13,7 +13,9 @@
 use crate::bound;
 use crate::clutter::Clutter;
 use crate::data::StampSet;
-use crate::degrade::{apply_illumination, finish, log_uniform, Degradation, Degradations};
+use crate::degrade::{
+    apply_gain, finish, illumination_gain, log_uniform, Degradation, Degradations,
+};
 use crate::error::{Result, StressError};
 use crate::geometry::{rotate, Homography, OrientedRect};
 use crate::markers::{Expectation, Family, MarkerKind, Placed, TruthMarker, PERIOD, STAMP_CELLS};
@@ -373,11 +375,13 @@ impl Generator {
             plane = warp(&plane, &layout.homography, 3, bgf);
             lap("perspective", &mut timings);
         }
-        if let Some(illum) = &deg.illumination {
-            apply_illumination(&mut plane, illum);
+        let gain = deg.illumination.map(|illum| {
+            let gain = illumination_gain(plane.width, plane.height, &illum);
+            apply_gain(&mut plane, &gain);
             lap("illumination", &mut timings);
-        }
-        let bounds = self.position_bounds(&spec, &layout, &deg, &plane, fg - bg)?;
+            gain
+        });
+        let bounds = self.position_bounds(&spec, &layout, &deg, &plane, gain.as_ref(), fg - bg)?;
         if bounds.iter().any(Option::is_some) {
             lap("bound", &mut timings);
         }
@@ -409,28 +413,24 @@ impl Generator {
     }
 
     /// The position bound of each expected marker of the scene's family, where the scene
-    /// has one ([`bound::applies`]); `clean` is the image before noise, `contrast` the dots'
-    /// grey level minus the background's.
+    /// has one ([`bound::applies`]); `clean` is the image before noise, `gain` its
+    /// illumination gain, `contrast` the dots' grey level minus the background's.
     fn position_bounds(
         &self,
         spec: &SceneSpec,
         layout: &Layout,
         deg: &Degradations,
         clean: &Plane,
+        gain: Option<&Plane>,
         contrast: f64,
     ) -> Result<Vec<Option<f64>>> {
         let noise = match deg.noise {
             Some(noise) if self.position_bounds && bound::applies(deg) => noise,
             _ => return Ok(vec![None; layout.markers.len()]),
         };
-        let gain = deg.illumination.map(|illum| {
-            let mut g = Plane::filled(clean.width, clean.height, 1.0);
-            apply_illumination(&mut g, &illum);
-            g
-        });
         let formation = bound::Formation {
             clean,
-            gain: gain.as_ref(),
+            gain,
             contrast,
             blur_sigma: deg.blur_sigma,
             noise,

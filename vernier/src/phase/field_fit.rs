@@ -589,6 +589,12 @@ impl FieldFit {
         beats
     }
 
+    /// The tilt this fit measured but did not carry in its phase model, per period: its
+    /// perspective times the weight it was taken at, zero without one.
+    fn tilt_left(&self) -> Vector2<f64> {
+        self.perspective.unwrap_or_default() * self.tilt_weight
+    }
+
     /// Whether, on a tilted field, the window's planes are shown to be further off than this
     /// fit's σ `field` (radians) says it is. The window's flat planes cannot follow a tilt's
     /// curvature and take in its mean over the window, a bias `b` its σ (a noise figure) does
@@ -1742,7 +1748,7 @@ fn fit_dot_field_generic(
             // The coarse step's whole tilt, where it measured one, rather than the flat
             // fit's one linear step, which a steep tilt's curvature cuts short.
             Some(_) if taken == Vector2::zeros() && !no_prior && misfit > 1.0 => goal.prior,
-            Some(p) if fit.tilt_weight > 0.0 && misfit > 1.0 => p * fit.tilt_weight,
+            Some(_) if fit.tilt_weight > 0.0 && misfit > 1.0 => fit.tilt_left(),
             _ => break,
         };
         let warp = Warp {
@@ -1757,8 +1763,8 @@ fn fit_dot_field_generic(
              ({:.2e}, {:.2e}) left, misfit {m:.1}",
             warp.perspective.x,
             warp.perspective.y,
-            warped.perspective.unwrap_or_default().x * warped.tilt_weight,
-            warped.perspective.unwrap_or_default().y * warped.tilt_weight,
+            warped.tilt_left().x,
+            warped.tilt_left().y,
         );
         taken = warp.perspective;
         warped.iterations += fit.iterations;
@@ -1766,7 +1772,7 @@ fn fit_dot_field_generic(
         fit = warped;
     }
     if taken != Vector2::zeros() {
-        let left = fit.perspective.unwrap_or_default() * fit.tilt_weight;
+        let left = fit.tilt_left();
         fit.perspective = Some(taken + left);
         fit.tilt_weight = 1.0;
     }

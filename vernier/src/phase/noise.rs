@@ -247,15 +247,15 @@ pub(crate) fn tilted_white_noise_variance(
 ) -> Option<f64> {
     let (rows, cols) = (plan.rows, plan.cols);
     let max_shift = MAX_SHIFT.min((rows.min(cols) / 4) as i64);
-    let within = |(d, error): ((i64, i64), f64), tilt: &LatticeTilt| {
-        lattice_match_weights(planes, rows, cols, d, MAX_LATTICE_ERROR - error, tilt)
+    // The untilted choice (`white_noise_variance`'s), where the tilt keeps it within the
+    // budget everywhere.
+    let (d, error) = lattice_shift(planes, max_shift).filter(|&(_, e)| e <= MAX_LATTICE_ERROR)?;
+    let Some(tilt) = tilt else {
+        return second_difference_variance(pixels, None, d, plan);
     };
-    let untilted = lattice_shift(planes, max_shift).filter(|&(_, e)| e <= MAX_LATTICE_ERROR);
-    let (Some(tilt), Some(shift)) = (tilt, untilted) else {
-        return white_noise_variance(pixels, None, planes, plan);
-    };
-    if within(shift, &tilt).is_none() {
-        return white_noise_variance(pixels, None, planes, plan);
+    let move_at = lattice_move(planes, rows, cols, d, &tilt);
+    if moves_within(&move_at, rows, cols, MAX_LATTICE_ERROR - error) {
+        return second_difference_variance(pixels, None, d, plan);
     }
     // Else the displacement whose usable region reaches farthest: its extent goes as the
     // budget the rounding leaves over the displacement's length.
@@ -267,65 +267,67 @@ pub(crate) fn tilted_white_noise_variance(
         }
     })
     .filter(|&(_, e)| e < MAX_LATTICE_ERROR)?;
-    let weights = within((d, error), &tilt);
+    let (move_at, budget) = (
+        lattice_move(planes, rows, cols, d, &tilt),
+        MAX_LATTICE_ERROR - error,
+    );
+    // Weight 1 where the tilt keeps the displacement within the budget, 0 elsewhere.
+    let weights = (!moves_within(&move_at, rows, cols, budget)).then(|| {
+        (0..rows * cols)
+            .map(|k| f32::from(u8::from(move_at(k % cols, k / cols) <= budget)))
+            .collect::<Vec<f32>>()
+    });
     second_difference_variance(pixels, weights.as_deref(), d, plan)
 }
 
-/// Weight 1 where the tilted lattice moves the displacement `(dx, dy)` by at most `budget`
-/// pixels, 0 elsewhere; `None` where it stays within the budget everywhere.
-fn lattice_match_weights(
-    planes: &[PhasePlane; 2],
+/// How far (pixels) the lattice tilted by `tilt` moves the displacement `(dx, dy)` at pixel
+/// `(i, j)`: `(p·v)·δ + (p·δ)·v` to first order ([`tilted_white_noise_variance`]).
+fn lattice_move<'a>(
+    planes: &'a [PhasePlane; 2],
     rows: usize,
     cols: usize,
     (dx, dy): (i64, i64),
-    budget: f64,
     tilt: &LatticeTilt,
-) -> Option<Vec<f32>> {
+) -> impl Fn(usize, usize) -> f64 + 'a {
     let [p, q] = planes;
     let det = p.a * q.b - p.b * q.a;
     let tau = std::f64::consts::TAU;
-    // Lattice (periods) → pixels: 2π·J⁻¹, J = [[a₁, b₁], [a₂, b₂]].
-    let to_pixels = |u: [f64; 2]| {
-        [
-            tau * (q.b * u[0] - p.b * u[1]) / det,
-            tau * (-q.a * u[0] + p.a * u[1]) / det,
-        ]
-    };
     let delta = [
         (p.a * dx as f64 + p.b * dy as f64) / tau,
         (q.a * dx as f64 + q.b * dy as f64) / tau,
     ];
-    let pr = tilt.perspective;
+    let (pr, centre) = (tilt.perspective, tilt.centre);
     let p_delta = pr[0] * delta[0] + pr[1] * delta[1];
-    let moved = |v: [f64; 2]| {
+    move |i, j| {
+        // Pixel (i, j) sits at x = i − cols div 2, y = j − rows div 2 in the planes' frame.
+        let (x, y) = (i as f64 - (cols / 2) as f64, j as f64 - (rows / 2) as f64);
+        let v = [
+            (p.a * x + p.b * y + p.c) / tau - centre[0],
+            (q.a * x + q.b * y + q.c) / tau - centre[1],
+        ];
         let p_v = pr[0] * v[0] + pr[1] * v[1];
-        let e = to_pixels([
+        let e = [
             p_v * delta[0] + p_delta * v[0],
             p_v * delta[1] + p_delta * v[1],
-        ]);
-        e[0].hypot(e[1])
-    };
-    // Pixel (i, j) sits at x = i − cols div 2, y = j − rows div 2 in the planes' frame.
-    let offset = |i: usize, j: usize| {
-        let (x, y) = (i as f64 - (cols / 2) as f64, j as f64 - (rows / 2) as f64);
-        [
-            (p.a * x + p.b * y + p.c) / tau - tilt.centre[0],
-            (q.a * x + q.b * y + q.c) / tau - tilt.centre[1],
-        ]
-    };
-    let corners = [(0, 0), (cols, 0), (0, rows), (cols, rows)];
-    if corners.iter().all(|&(i, j)| moved(offset(i, j)) <= budget) {
-        return None; // `moved` is linear in the offset: its largest value is at a corner
+        ];
+        // Lattice (periods) → pixels: 2π·J⁻¹, J = [[a₁, b₁], [a₂, b₂]].
+        let ex = tau * (q.b * e[0] - p.b * e[1]) / det;
+        let ey = tau * (-q.a * e[0] + p.a * e[1]) / det;
+        ex.hypot(ey)
     }
-    let mut weights = vec![0.0f32; rows * cols];
-    for j in 0..rows {
-        for i in 0..cols {
-            if moved(offset(i, j)) <= budget {
-                weights[j * cols + i] = 1.0;
-            }
-        }
-    }
-    Some(weights)
+}
+
+/// True when `move_at` stays within `budget` over the whole `rows × cols` image: the move is
+/// linear in the pixel position, so its largest size is at a corner.
+fn moves_within(
+    move_at: &impl Fn(usize, usize) -> f64,
+    rows: usize,
+    cols: usize,
+    budget: f64,
+) -> bool {
+    [(0, 0), (cols, 0), (0, rows), (cols, rows)]
+        .iter()
+        .all(|&(i, j)| move_at(i, j) <= budget)
 }
 
 /// Robust estimate of the white-noise variance of `pixels` (row-major, the plan's size), in
