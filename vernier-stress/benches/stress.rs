@@ -7,9 +7,11 @@
 //!
 //! Prints progress on stderr, then per family a Markdown table (one row per degradation
 //! category) and, for the rows with sensor noise, each marker's Cramér–Rao bound against its
-//! error (`vernier_stress::bound`), then the failing seeds and the generation-time profile. `--only SEED` runs one scene
-//! and prints its truth, detections and verdicts as JSON; `--dump DIR` writes every failing
-//! scene (or the `--only` scene) as a 16-bit PNG plus a JSON file.
+//! error, and for grey JPEG files the same under the model of their rounding
+//! (`vernier_stress::bound`), then the failing seeds and the generation-time profile.
+//! `--only SEED` runs one scene and prints its truth, detections and verdicts as JSON;
+//! `--dump DIR` writes every failing scene (or the `--only` scene) as a 16-bit PNG plus a JSON
+//! file.
 
 use std::path::PathBuf;
 use std::process::ExitCode;

@@ -2,8 +2,8 @@
 //! unbiased estimator can reach on that image, whatever its method.
 //!
 //! It is computed where the image is the marker's render plus independent sensor noise and
-//! nothing else that hides information in a way the bound cannot state: no perspective, JPEG,
-//! colour cast, dust or hair (see [`applies`]). Then the Fisher information of the marker's
+//! nothing else that hides information in a way the bound cannot state: no perspective,
+//! colour cast, dust or hair (see [`kind`]). Then the Fisher information of the marker's
 //! `(x, y, alpha, pixel size)` is `F = Σ_pixels J Jᵀ / σ²`, with
 //!
 //! * `J` the derivatives of the clean pixel value: `(fg − bg) · gain · ∂coverage/∂θ`, the
@@ -17,6 +17,18 @@
 //! known (the dot shape, grey levels, blur, illumination), and the quantisation and the
 //! clipping at 0 and 1 are left out: each only removes information, so the figure stays a
 //! lower bound for every unbiased estimator, the detector included.
+//!
+//! **JPEG: a model, not a bound.** A grey JPEG file quantises each 8 × 8 block's orthonormal
+//! DCT coefficient `(u, v)` with the step `Q_uv` of its quality's luminance table (ITU T.81
+//! Annex K.1 scaled as libjpeg does, as the `image` crate's encoder does). Taking that rounding
+//! as independent uniform noise of variance `Q_uv²/12` per coefficient (the additive model of
+//! quantisation, Widrow & Kollár, *Quantization Noise*, 2008), beside the sensor noise (white,
+//! so the same variance on every coefficient) and the 8-bit rounding before it, gives the same
+//! Fisher sum over coefficients instead of pixels ([`BoundKind::JpegModel`]). The rounding is
+//! deterministic, so no Cramér–Rao bound holds for it; the model says how much of the dots'
+//! signal the file keeps at each frequency, and errors far above its figure point at the
+//! estimator, errors near it at the file. It overstates what a coefficient rounded to zero
+//! still says (nothing, to small moves).
 //!
 //! An estimator at the bound has a radial error with `P(|e| > r) = exp(−r²/B²)` (`B²` the
 //! bound; the two axes' variances nearly equal on these square markers), so its p99 over a
@@ -32,15 +44,39 @@ use vernier::layout::Layout;
 /// Marker shift of the central differences, pixels (at its border for alpha and scale).
 const STEP_PX: f64 = 0.01;
 
-/// True when a scene's markers have a bound: sensor noise, and none of perspective, JPEG,
-/// colour cast, dust or hair (blur, illumination, low contrast and clutter beside the markers
-/// keep the image an affine function of each marker's coverage plus independent noise).
-pub fn applies(d: &Degradations) -> bool {
-    d.noise.is_some()
-        && d.perspective.is_none()
-        && d.jpeg_quality.is_none()
-        && d.colour.is_none()
-        && !d.dust_hair
+/// What a marker's figure is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BoundKind {
+    /// The Cramér–Rao bound: the render plus independent sensor noise.
+    CramerRao,
+    /// A grey JPEG file, its rounding taken as additive noise per DCT coefficient: an
+    /// estimate, not a bound (see the module's documentation).
+    JpegModel,
+}
+
+/// A marker's position bound.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PositionBound {
+    /// `B`, the least RMS radial error of its origin, pixels.
+    pub px: f64,
+    /// What `B` is.
+    pub kind: BoundKind,
+}
+
+/// Which figure a scene's markers have, if any: none with perspective, a colour cast, dust or
+/// hair (blur, illumination, low contrast and clutter beside the markers keep the image an
+/// affine function of each marker's coverage plus noise); the JPEG model for a grey JPEG file;
+/// the Cramér–Rao bound for sensor noise alone.
+pub fn kind(d: &Degradations) -> Option<BoundKind> {
+    if d.perspective.is_some() || d.colour.is_some() || d.dust_hair {
+        None
+    } else if d.jpeg_quality.is_some() {
+        Some(BoundKind::JpegModel)
+    } else if d.noise.is_some() {
+        Some(BoundKind::CramerRao)
+    } else {
+        None
+    }
 }
 
 /// What the bound needs to know of a scene's image formation.
@@ -53,13 +89,26 @@ pub struct Formation<'a> {
     pub contrast: f64,
     /// Optical blur σ, pixels.
     pub blur_sigma: f64,
-    /// Sensor noise.
-    pub noise: Noise,
+    /// Sensor noise, if any.
+    pub noise: Option<Noise>,
+    /// JPEG quality of a grey JPEG file, `None` for a lossless one.
+    pub jpeg_quality: Option<u8>,
+}
+
+impl Formation<'_> {
+    /// Variance of the sensor noise at pixel `i`, fraction of full scale squared.
+    fn noise_variance(&self, i: usize) -> f64 {
+        self.noise.map_or(0.0, |n| {
+            let v = (self.clean.data[i] as f64).max(0.0);
+            (n.gaussian + n.shot * v.sqrt()).powi(2)
+        })
+    }
 }
 
 /// The bound `B` (pixels) of marker `m` drawn from `layout`: `E|e|² ≥ B²` for the radial
-/// error `e` of its origin, image pixels. `None` when the Fisher information is singular (a
-/// marker nearly out of the frame).
+/// error `e` of its origin, image pixels; with `f.jpeg_quality` set, the JPEG model's figure
+/// instead (no bound). `None` when the Fisher information is singular (a marker nearly out of
+/// the frame).
 pub fn position_bound(layout: &dyn Layout, m: &Placed, f: &Formation) -> Result<Option<f64>> {
     let (w, h) = (f.clean.width, f.clean.height);
     let border = m.side_px() * std::f64::consts::FRAC_1_SQRT_2;
@@ -110,25 +159,147 @@ pub fn position_bound(layout: &dyn Layout, m: &Placed, f: &Formation) -> Result<
         let (plus, minus) = (render(k, 1.0)?, render(k, -1.0)?);
         derivatives.push((plus, minus, 2.0 * step));
     }
-    let mut fisher = Matrix4::<f64>::zeros();
-    for r in 0..rh {
-        for c in 0..rw {
-            let (i, local) = ((r + r0) * w + c + c0, r * rw + c);
-            let gain = f.gain.map_or(1.0, |g| g.data[i] as f64);
-            let v = (f.clean.data[i] as f64).max(0.0);
-            let sigma = f.noise.gaussian + f.noise.shot * v.sqrt();
-            let scale = f.contrast * gain / sigma;
-            let j = Vector4::from_fn(|k, _| {
-                let (plus, minus, span) = &derivatives[k];
-                scale * (plus.data[local] as f64 - minus.data[local] as f64) / span
-            });
-            fisher += j * j.transpose();
-        }
-    }
+    // The derivatives of the clean pixel value at region pixel (r, c).
+    let slope = |r: usize, c: usize| -> Vector4<f64> {
+        let i = (r + r0) * w + c + c0;
+        let scale = f.contrast * f.gain.map_or(1.0, |g| g.data[i] as f64);
+        Vector4::from_fn(|k, _| {
+            let (plus, minus, span) = &derivatives[k];
+            let local = r * rw + c;
+            scale * (plus.data[local] as f64 - minus.data[local] as f64) / span
+        })
+    };
+    let region = Region { r0, r1, c0, c1 };
+    let fisher = match f.jpeg_quality {
+        None => pixel_fisher(f, &region, slope),
+        Some(quality) => jpeg_fisher(f, &region, &jpeg_variances(quality), slope),
+    };
     Ok(fisher
         .try_inverse()
         .map(|inverse| (inverse[(0, 0)] + inverse[(1, 1)]).sqrt())
         .filter(|b| b.is_finite() && *b > 0.0))
+}
+
+/// The image rows `r0..r1` and columns `c0..c1` a marker's moves can change.
+struct Region {
+    r0: usize,
+    r1: usize,
+    c0: usize,
+    c1: usize,
+}
+
+/// `Σ J Jᵀ/σ²` over the region's pixels; `slope(r, c)` is `J` at region pixel `(r, c)`.
+fn pixel_fisher(
+    f: &Formation,
+    region: &Region,
+    slope: impl Fn(usize, usize) -> Vector4<f64>,
+) -> Matrix4<f64> {
+    let w = f.clean.width;
+    let mut fisher = Matrix4::zeros();
+    for r in region.r0..region.r1 {
+        for c in region.c0..region.c1 {
+            let variance = f.noise_variance(r * w + c);
+            if variance > 0.0 {
+                let j = slope(r - region.r0, c - region.c0);
+                fisher += j * j.transpose() / variance;
+            }
+        }
+    }
+    fisher
+}
+
+/// JPEG block size, pixels.
+const BLOCK: usize = 8;
+
+/// ITU T.81 Annex K.1 luminance quantisation table, row-major (`v·8 + u`, `v` the vertical
+/// frequency).
+#[rustfmt::skip]
+const LUMA_TABLE: [u16; 64] = [
+    16, 11, 10, 16,  24,  40,  51,  61,
+    12, 12, 14, 19,  26,  58,  60,  55,
+    14, 13, 16, 24,  40,  57,  69,  56,
+    14, 17, 22, 29,  51,  87,  80,  62,
+    18, 22, 37, 56,  68, 109, 103,  77,
+    24, 35, 55, 64,  81, 104, 113,  92,
+    49, 64, 78, 87, 103, 121, 120, 101,
+    72, 92, 95, 98, 112, 100, 103,  99,
+];
+
+/// The luminance steps of JPEG `quality` (1–100), scaled as libjpeg does, 8-bit grey levels.
+fn luma_steps(quality: u8) -> [f64; 64] {
+    let q = u32::from(quality.clamp(1, 100));
+    let scale = if q < 50 { 5000 / q } else { 200 - 2 * q };
+    LUMA_TABLE.map(|t| ((u32::from(t) * scale + 50) / 100).clamp(1, 255) as f64)
+}
+
+/// The variance the additive model gives each DCT coefficient `(u, v)` (index `v·8 + u`) of
+/// a grey JPEG file of `quality`, fraction of full scale squared: its step's rounding,
+/// `Q_uv²/12`, and the 8-bit rounding before it, `1/12` of a level squared (white, so the same
+/// on every coefficient).
+fn jpeg_variances(quality: u8) -> [f64; 64] {
+    let level = 1.0 / 255.0;
+    luma_steps(quality).map(|q| ((q * level).powi(2) + level * level) / 12.0)
+}
+
+/// The orthonormal 8-point DCT-II basis, `[k][n]`.
+fn dct_basis() -> [[f64; BLOCK]; BLOCK] {
+    let n = BLOCK as f64;
+    std::array::from_fn(|k| {
+        let norm = if k == 0 {
+            (1.0 / n).sqrt()
+        } else {
+            (2.0 / n).sqrt()
+        };
+        std::array::from_fn(|x| {
+            norm * ((2 * x + 1) as f64 * k as f64 * std::f64::consts::PI / (2.0 * n)).cos()
+        })
+    })
+}
+
+/// The Fisher sum of a grey JPEG file under the additive model (module documentation): over
+/// the 8 × 8 blocks the region touches (whole blocks inside the image; the encoder pads the
+/// last ones, left out), `Σ_uv D_uv D_uvᵀ / (σ̄² + variances_uv)`, with `D_uv` the block's
+/// DCT of `J`, `σ̄²` the block's mean sensor noise variance ([`jpeg_variances`]).
+fn jpeg_fisher(
+    f: &Formation,
+    region: &Region,
+    variances: &[f64; 64],
+    slope: impl Fn(usize, usize) -> Vector4<f64>,
+) -> Matrix4<f64> {
+    let (w, h) = (f.clean.width, f.clean.height);
+    let basis = dct_basis();
+    let mut fisher = Matrix4::zeros();
+    let mut block = [[Vector4::<f64>::zeros(); BLOCK]; BLOCK];
+    for by in region.r0 / BLOCK..region.r1.div_ceil(BLOCK).min(h / BLOCK) {
+        for bx in region.c0 / BLOCK..region.c1.div_ceil(BLOCK).min(w / BLOCK) {
+            let mut noise = 0.0;
+            for (y, row) in block.iter_mut().enumerate() {
+                for (x, j) in row.iter_mut().enumerate() {
+                    let (r, c) = (by * BLOCK + y, bx * BLOCK + x);
+                    noise += f.noise_variance(r * w + c);
+                    let inside =
+                        (region.r0..region.r1).contains(&r) && (region.c0..region.c1).contains(&c);
+                    *j = if inside {
+                        slope(r - region.r0, c - region.c0)
+                    } else {
+                        Vector4::zeros()
+                    };
+                }
+            }
+            let white = noise / (BLOCK * BLOCK) as f64;
+            // The DCT along the rows, then down the columns (the basis is separable).
+            let rows: [[Vector4<f64>; BLOCK]; BLOCK] = std::array::from_fn(|y| {
+                std::array::from_fn(|u| (0..BLOCK).map(|x| block[y][x] * basis[u][x]).sum())
+            });
+            for (v, bv) in basis.iter().enumerate() {
+                for u in 0..BLOCK {
+                    let d: Vector4<f64> = (0..BLOCK).map(|y| rows[y][u] * bv[y]).sum();
+                    fisher += d * d.transpose() / (white + variances[v * BLOCK + u]);
+                }
+            }
+        }
+    }
+    fisher
 }
 
 /// The `q` quantile (e.g. 0.99) of the radial errors of an estimator at the bound over markers
@@ -157,6 +328,78 @@ pub fn efficient_quantile(bounds: &[f64], q: f64) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The zig-zag order of a JPEG quantisation segment: entry `i` is natural index `ZIGZAG[i]`.
+    #[rustfmt::skip]
+    const ZIGZAG: [usize; 64] = [
+         0,  1,  8, 16,  9,  2,  3, 10, 17, 24, 32, 25, 18, 11,  4,  5,
+        12, 19, 26, 33, 40, 48, 41, 34, 27, 20, 13,  6,  7, 14, 21, 28,
+        35, 42, 49, 56, 57, 50, 43, 36, 29, 22, 15, 23, 30, 37, 44, 51,
+        58, 59, 52, 45, 38, 31, 39, 46, 53, 60, 61, 54, 47, 55, 62, 63,
+    ];
+
+    /// The first (luminance) table of the file the suite's JPEG stage writes at `quality`.
+    fn written_luma_table(quality: u8) -> [f64; 64] {
+        let grey = image::GrayImage::from_fn(16, 16, |x, y| image::Luma([(x * 9 + y * 5) as u8]));
+        let mut bytes = Vec::new();
+        let encoder = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, quality);
+        image::DynamicImage::ImageLuma8(grey)
+            .write_with_encoder(encoder)
+            .unwrap();
+        // DQT: FF DB, length (2 bytes), precision/id (1 byte), then 64 8-bit entries.
+        let at = bytes.windows(2).position(|w| w == [0xFF, 0xDB]).unwrap() + 5;
+        let mut table = [0.0; 64];
+        for (i, &natural) in ZIGZAG.iter().enumerate() {
+            table[natural] = bytes[at + i] as f64;
+        }
+        table
+    }
+
+    #[test]
+    fn the_modelled_steps_are_the_ones_the_suite_s_files_carry() {
+        for quality in [50, 63, 73, 88, 95] {
+            assert_eq!(
+                luma_steps(quality),
+                written_luma_table(quality),
+                "quality {quality}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_block_sum_equals_the_pixel_sum_under_white_noise() {
+        // An orthonormal transform keeps a white noise white: with the same variance on every
+        // coefficient the DCT-domain sum is the pixel-domain one. Region (5..19) × (3..21) on a
+        // 24 × 24 image, arbitrary slopes.
+        let clean = Plane::filled(24, 24, 0.5);
+        let formation = |gaussian: f64| Formation {
+            clean: &clean,
+            gain: None,
+            contrast: 1.0,
+            blur_sigma: 0.5,
+            noise: Some(Noise {
+                gaussian,
+                shot: 0.0,
+            }),
+            jpeg_quality: None,
+        };
+        let region = Region {
+            r0: 5,
+            r1: 19,
+            c0: 3,
+            c1: 21,
+        };
+        let slope = |r: usize, c: usize| {
+            Vector4::from_fn(|k, _| ((r * 7 + c * 3 + k * 5) as f64 * 0.37).sin())
+        };
+        let (g, extra): (f64, f64) = (0.01, 2e-4);
+        let pixels = pixel_fisher(&formation((g * g + extra).sqrt()), &region, slope);
+        let blocks = jpeg_fisher(&formation(g), &region, &[extra; 64], slope);
+        assert!(
+            (pixels - blocks).norm() < 1e-9 * pixels.norm(),
+            "{pixels} vs {blocks}"
+        );
+    }
 
     #[test]
     fn one_marker_s_quantile_is_the_rayleigh_quantile() {

@@ -6,6 +6,7 @@
 //! another ID = wrong ID, matched to a marker cut by the border = ignored, unmatched = false
 //! marker; expected markers left unmatched = missed.
 
+use crate::bound::BoundKind;
 use crate::markers::{Expectation, TruthMarker};
 use crate::scene::Scene;
 use std::f64::consts::FRAC_PI_2;
@@ -64,8 +65,11 @@ pub struct SceneResult {
     /// [`Verdict::Found::predicted_std_px`]), where that σ is positive and finite.
     pub normalised_errors: Vec<f64>,
     /// `(position error, its Cramér–Rao bound)` of the found markers that have a bound
-    /// ([`TruthMarker::position_bound_px`]), pixels.
+    /// ([`TruthMarker::position_bound`], [`BoundKind::CramerRao`]), pixels.
     pub bounded_errors: Vec<(f64, f64)>,
+    /// `(position error, its JPEG model's figure)` of the found markers in grey JPEG files
+    /// ([`BoundKind::JpegModel`]), pixels.
+    pub jpeg_modelled_errors: Vec<(f64, f64)>,
     /// One verdict per detection.
     pub verdicts: Vec<Verdict>,
     /// Detector error or panic message, if detection failed.
@@ -114,6 +118,7 @@ pub fn evaluate(
                 angle_errors: Vec::new(),
                 normalised_errors: Vec::new(),
                 bounded_errors: Vec::new(),
+                jpeg_modelled_errors: Vec::new(),
                 verdicts: Vec::new(),
                 error: Some(e),
                 detect_ms,
@@ -174,6 +179,7 @@ pub fn evaluate(
         angle_errors: Vec::new(),
         normalised_errors: Vec::new(),
         bounded_errors: Vec::new(),
+        jpeg_modelled_errors: Vec::new(),
         verdicts,
         error: None,
         detect_ms,
@@ -186,8 +192,12 @@ pub fn evaluate(
                 angle_error,
                 predicted_std_px,
             } => {
-                if let Some(b) = truth.get(ti).and_then(|t| t.position_bound_px) {
-                    r.bounded_errors.push((position_error, b));
+                if let Some(b) = truth.get(ti).and_then(|t| t.position_bound) {
+                    match b.kind {
+                        BoundKind::CramerRao => &mut r.bounded_errors,
+                        BoundKind::JpegModel => &mut r.jpeg_modelled_errors,
+                    }
+                    .push((position_error, b.px));
                 }
                 r.found += 1;
                 r.position_errors.push(position_error);

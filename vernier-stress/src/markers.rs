@@ -7,6 +7,7 @@
 //! `Pose::from_origin_in_image(origin − centre, alpha, pixel_size)`, which puts the origin
 //! there; under perspective the truth is the homography image of that plane point.
 
+use crate::bound::PositionBound;
 use crate::data::StampSet;
 use crate::error::Result;
 use crate::geometry::{rotate, Homography, OrientedRect};
@@ -269,7 +270,7 @@ impl Placed {
             period_px: self.period_px() * scale,
             mirrored: self.mirrored,
             expectation: self.expectation,
-            position_bound_px: None,
+            position_bound: None,
         })
     }
 }
@@ -296,7 +297,7 @@ pub struct TruthMarker {
     pub mirrored: bool,
     /// What the detector should do with it.
     pub expectation: Expectation,
-    /// Cramér–Rao bound of its origin's radial error, pixels ([`crate::bound`]), where the
-    /// scene has one.
-    pub position_bound_px: Option<f64>,
+    /// Cramér–Rao bound of its origin's radial error (or its JPEG model; [`crate::bound`]),
+    /// where the scene has one.
+    pub position_bound: Option<PositionBound>,
 }

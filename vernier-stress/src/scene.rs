@@ -10,7 +10,7 @@
 //! contrast) → dust and hair on the sample → perspective warp → illumination → sensor (colour
 //! cast, noise) → file (JPEG or quantisation).
 
-use crate::bound;
+use crate::bound::{self, PositionBound};
 use crate::clutter::Clutter;
 use crate::data::StampSet;
 use crate::degrade::{
@@ -240,8 +240,8 @@ impl Generator {
     }
 
     /// The same generator, also computing the Cramér–Rao bound of each marker's position
-    /// where the scene has one ([`bound::applies`]; [`TruthMarker::position_bound_px`]). The
-    /// scenes are the same: the bound draws nothing.
+    /// (or its JPEG model) where the scene has one ([`bound::kind`];
+    /// [`TruthMarker::position_bound`]). The scenes are the same: the bound draws nothing.
     pub fn with_position_bounds(self) -> Self {
         Generator {
             position_bounds: true,
@@ -394,7 +394,7 @@ impl Generator {
             .map(|(m, bound)| {
                 m.truth(&layout.homography)
                     .map(|t| TruthMarker {
-                        position_bound_px: bound,
+                        position_bound: bound,
                         ..t
                     })
                     .ok_or_else(|| StressError::new("marker beyond the horizon"))
@@ -413,7 +413,7 @@ impl Generator {
     }
 
     /// The position bound of each expected marker of the scene's family, where the scene
-    /// has one ([`bound::applies`]); `clean` is the image before noise, `gain` its
+    /// has one ([`bound::kind`]); `clean` is the image before noise, `gain` its
     /// illumination gain, `contrast` the dots' grey level minus the background's.
     fn position_bounds(
         &self,
@@ -423,9 +423,9 @@ impl Generator {
         clean: &Plane,
         gain: Option<&Plane>,
         contrast: f64,
-    ) -> Result<Vec<Option<f64>>> {
-        let noise = match deg.noise {
-            Some(noise) if self.position_bounds && bound::applies(deg) => noise,
+    ) -> Result<Vec<Option<PositionBound>>> {
+        let kind = match bound::kind(deg) {
+            Some(kind) if self.position_bounds => kind,
             _ => return Ok(vec![None; layout.markers.len()]),
         };
         let formation = bound::Formation {
@@ -433,7 +433,8 @@ impl Generator {
             gain,
             contrast,
             blur_sigma: deg.blur_sigma,
-            noise,
+            noise: deg.noise,
+            jpeg_quality: deg.jpeg_quality,
         };
         layout
             .markers
@@ -442,7 +443,9 @@ impl Generator {
                 if m.expectation != Expectation::Expected || m.kind.family() != spec.family {
                     return Ok(None);
                 }
-                bound::position_bound(m.kind.layout(&self.stamps)?.as_ref(), m, &formation)
+                let px =
+                    bound::position_bound(m.kind.layout(&self.stamps)?.as_ref(), m, &formation)?;
+                Ok(px.map(|px| PositionBound { px, kind }))
             })
             .collect()
     }
