@@ -7,7 +7,8 @@
 //!
 //! * [`scene`]: seeds → scenes (image + truth); [`markers`]: families and truth convention;
 //! * [`degrade`], [`clutter`], [`raster`], [`geometry`]: how the images are made;
-//! * [`bound`]: the Cramér–Rao bound of a marker's position on noisy scenes;
+//! * [`bound`]: the Cramér–Rao bound of a marker's position on noisy scenes, and its JPEG
+//!   model on JPEG scenes;
 //! * [`evaluate`]: matching detections to the truth; [`suite`]: running and tallying many
 //!   scenes; [`dump`]: writing a scene for inspection; [`data`]: the shared data folder.
 //!

@@ -177,8 +177,8 @@ pub struct Generator {
     stamps: StampSet,
     /// Share of HP codes seen from the back ([`MIRRORED_FRACTION`] by default).
     mirrored_fraction: f64,
-    /// Compute each marker's Cramér–Rao bound where the scene has one (off by default: it
-    /// costs eight renders of the marker).
+    /// Compute each marker's Cramér–Rao bound (or JPEG model) where the scene has one (off
+    /// by default: it costs eight renders of the marker).
     position_bounds: bool,
 }
 

@@ -245,14 +245,14 @@ pub(crate) fn tilted_white_noise_variance(
     plan: &mut NoisePlan,
     tilt: Option<LatticeTilt>,
 ) -> Option<f64> {
+    let Some(tilt) = tilt else {
+        return white_noise_variance(pixels, None, planes, plan);
+    };
     let (rows, cols) = (plan.rows, plan.cols);
     let max_shift = MAX_SHIFT.min((rows.min(cols) / 4) as i64);
     // The untilted choice (`white_noise_variance`'s), where the tilt keeps it within the
     // budget everywhere.
     let (d, error) = lattice_shift(planes, max_shift).filter(|&(_, e)| e <= MAX_LATTICE_ERROR)?;
-    let Some(tilt) = tilt else {
-        return second_difference_variance(pixels, None, d, plan);
-    };
     let move_at = lattice_move(planes, rows, cols, d, &tilt);
     if moves_within(&move_at, rows, cols, MAX_LATTICE_ERROR - error) {
         return second_difference_variance(pixels, None, d, plan);
