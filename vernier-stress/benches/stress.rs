@@ -7,8 +7,9 @@
 //!
 //! Prints progress on stderr, then per family a Markdown table (one row per degradation
 //! category) and, for the rows with sensor noise, each marker's Cramér–Rao bound against its
-//! error, and for grey JPEG files the same under the model of their rounding
-//! (`vernier_stress::bound`), then the failing seeds and the generation-time profile.
+//! error, and for grey JPEG files the same under the model of their rounding with two
+//! reference estimators' errors on the same files (`vernier_stress::bound`), then the failing
+//! seeds and the generation-time profile.
 //! `--only SEED` runs one scene and prints its truth, detections and verdicts as JSON;
 //! `--dump DIR` writes every failing scene (or the `--only` scene) as a 16-bit PNG plus a JSON
 //! file.

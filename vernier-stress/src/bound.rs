@@ -30,6 +30,15 @@
 //! estimator, errors near it at the file. It overstates what a coefficient rounded to zero
 //! still says (nothing, to small moves).
 //!
+//! **Two reference estimators on each JPEG file** ([`KnownShapeErrors`]) test the model
+//! against the file itself: least squares that know everything but the pose (dot shape, grey
+//! levels, blur, illumination), one Gauss–Newton step from the true pose (`δ = A⁻¹ Jᵀ W e`,
+//! `e` the file's pixels minus the clean render; exact to first order, and the errors are
+//! ~1e-3 px). One weighs every pixel alike, as the detector's fit does; the other weighs each
+//! block's DCT coefficient by the model's variance, as generalised least squares under the
+//! model would. The weighted one reaching `M` on the actual files says that the model's
+//! figure is there to take, by an estimator that knows the file's table and the dots' shape.
+//!
 //! An estimator at the bound has a radial error with `P(|e| > r) = exp(−r²/B²)` (`B²` the
 //! bound; the two axes' variances nearly equal on these square markers), so its p99 over a
 //! set of markers solves `mean exp(−r²/Bᵢ²) = 0.01` ([`efficient_quantile`]).
@@ -38,8 +47,9 @@ use crate::degrade::{Degradations, Noise};
 use crate::error::Result;
 use crate::markers::Placed;
 use crate::raster::{add_marker, Plane};
-use nalgebra::{Matrix4, Vector2, Vector4};
+use nalgebra::{Matrix4, Vector2, Vector4, Vector5};
 use vernier::layout::Layout;
+use vernier::GreyImage;
 
 /// Marker shift of the central differences, pixels (at its border for alpha and scale).
 const STEP_PX: f64 = 0.01;
@@ -61,6 +71,20 @@ pub struct PositionBound {
     pub px: f64,
     /// What `B` is.
     pub kind: BoundKind,
+    /// The reference estimators' errors on the file ([`BoundKind::JpegModel`] with the image
+    /// given, [`Formation::observed`]).
+    pub known_shape: Option<KnownShapeErrors>,
+}
+
+/// The radial origin errors (pixels) of the two reference estimators on one marker of a grey
+/// JPEG file: least squares that know the dot shape, grey levels and blur, linearised about
+/// the true pose (module documentation).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct KnownShapeErrors {
+    /// Every pixel weighted alike.
+    pub unweighted: f64,
+    /// Each block's DCT coefficient weighted by the model's variance.
+    pub weighted: f64,
 }
 
 /// Which figure a scene's markers have, if any: none with perspective, a colour cast, dust or
@@ -93,6 +117,9 @@ pub struct Formation<'a> {
     pub noise: Option<Noise>,
     /// JPEG quality of a grey JPEG file, `None` for a lossless one.
     pub jpeg_quality: Option<u8>,
+    /// The image the detector reads (same size as `clean`), for the reference estimators of
+    /// a JPEG file ([`KnownShapeErrors`]); `None` to leave them out.
+    pub observed: Option<&'a GreyImage>,
 }
 
 impl Formation<'_> {
@@ -107,9 +134,13 @@ impl Formation<'_> {
 
 /// The bound `B` (pixels) of marker `m` drawn from `layout`: `E|e|² ≥ B²` for the radial
 /// error `e` of its origin, image pixels; with `f.jpeg_quality` set, the JPEG model's figure
-/// instead (no bound). `None` when the Fisher information is singular (a marker nearly out of
-/// the frame).
-pub fn position_bound(layout: &dyn Layout, m: &Placed, f: &Formation) -> Result<Option<f64>> {
+/// instead (no bound), with the reference estimators' errors where `f.observed` is given.
+/// `None` when the Fisher information is singular (a marker nearly out of the frame).
+pub fn position_bound(
+    layout: &dyn Layout,
+    m: &Placed,
+    f: &Formation,
+) -> Result<Option<PositionBound>> {
     let (w, h) = (f.clean.width, f.clean.height);
     let border = m.side_px() * std::f64::consts::FRAC_1_SQRT_2;
     let steps = [
@@ -123,16 +154,14 @@ pub fn position_bound(layout: &dyn Layout, m: &Placed, f: &Formation) -> Result<
     let half = m.footprint().bounding_half();
     let reach = half.x.max(half.y) + 0.1 * m.side_px() + (4.0 * f.blur_sigma).ceil() + 5.0;
     let clip = |v: f64, n: usize| (v.floor().max(0.0) as usize).min(n);
-    let (c0, c1) = (
-        clip(m.origin.x - reach, w),
-        clip(m.origin.x + reach + 1.0, w),
-    );
-    let (r0, r1) = (
-        clip(m.origin.y - reach, h),
-        clip(m.origin.y + reach + 1.0, h),
-    );
-    let (rw, rh) = (c1 - c0, r1 - r0);
-    let corner = Vector2::new(c0 as f64, r0 as f64);
+    let region = Region {
+        r0: clip(m.origin.y - reach, h),
+        r1: clip(m.origin.y + reach + 1.0, h),
+        c0: clip(m.origin.x - reach, w),
+        c1: clip(m.origin.x + reach + 1.0, w),
+    };
+    let (rw, rh) = (region.c1 - region.c0, region.r1 - region.r0);
+    let corner = Vector2::new(region.c0 as f64, region.r0 as f64);
     let render = |k: usize, sign: f64| -> Result<Plane> {
         let mut moved = *m;
         let s = sign * steps[k];
@@ -161,23 +190,71 @@ pub fn position_bound(layout: &dyn Layout, m: &Placed, f: &Formation) -> Result<
     }
     // The derivatives of the clean pixel value at region pixel (r, c).
     let slope = |r: usize, c: usize| -> Vector4<f64> {
-        let i = (r + r0) * w + c + c0;
+        let (i, local) = ((r + region.r0) * w + c + region.c0, r * rw + c);
         let scale = f.contrast * f.gain.map_or(1.0, |g| g.data[i] as f64);
         Vector4::from_fn(|k, _| {
             let (plus, minus, span) = &derivatives[k];
-            let local = r * rw + c;
             scale * (plus.data[local] as f64 - minus.data[local] as f64) / span
         })
     };
-    let region = Region { r0, r1, c0, c1 };
-    let fisher = match f.jpeg_quality {
-        None => pixel_fisher(f, &region, slope),
-        Some(quality) => jpeg_fisher(f, &region, &jpeg_variances(quality), slope),
+    let (fisher, kind, known_shape) = match f.jpeg_quality {
+        None => {
+            let weight = |i: usize| {
+                let variance = f.noise_variance(i);
+                if variance > 0.0 {
+                    1.0 / variance
+                } else {
+                    0.0
+                }
+            };
+            let (fisher, _) = pixel_sums(w, &region, slope, weight, |_| 0.0);
+            (fisher, BoundKind::CramerRao, None)
+        }
+        Some(quality) => {
+            let (fisher, known_shape) = jpeg_model(f, &region, quality, slope);
+            (fisher, BoundKind::JpegModel, known_shape)
+        }
     };
     Ok(fisher
         .try_inverse()
         .map(|inverse| (inverse[(0, 0)] + inverse[(1, 1)]).sqrt())
-        .filter(|b| b.is_finite() && *b > 0.0))
+        .filter(|b| b.is_finite() && *b > 0.0)
+        .map(|px| PositionBound {
+            px,
+            kind,
+            known_shape,
+        }))
+}
+
+/// The JPEG model's Fisher sum of a marker (`slope` its `J` on `region`) in a grey file of
+/// `quality`, with the reference estimators' errors where `f.observed` is given.
+fn jpeg_model(
+    f: &Formation,
+    region: &Region,
+    quality: u8,
+    slope: impl Fn(usize, usize) -> Vector4<f64>,
+) -> (Matrix4<f64>, Option<KnownShapeErrors>) {
+    let residual = |i: usize| {
+        f.observed.map_or(0.0, |image| {
+            f64::from(image.pixels()[i]) - f64::from(f.clean.data[i])
+        })
+    };
+    let (fisher, weighted) = jpeg_sums(f, region, &jpeg_variances(quality), &slope, residual);
+    let known_shape = f.observed.and_then(|_| {
+        let (matrix, unweighted) = pixel_sums(f.clean.width, region, &slope, |_| 1.0, residual);
+        Some(KnownShapeErrors {
+            unweighted: origin_error(&matrix, &unweighted)?,
+            weighted: origin_error(&fisher, &weighted)?,
+        })
+    });
+    (fisher, known_shape)
+}
+
+/// The radial origin error of the least-squares step `δ = A⁻¹ b` (pixels), `None` where `A`
+/// is singular.
+fn origin_error(a: &Matrix4<f64>, b: &Vector4<f64>) -> Option<f64> {
+    let step = a.try_inverse()? * b;
+    Some(step[0].hypot(step[1])).filter(|e| e.is_finite())
 }
 
 /// The image rows `r0..r1` and columns `c0..c1` a marker's moves can change.
@@ -188,24 +265,31 @@ struct Region {
     c1: usize,
 }
 
-/// `Σ J Jᵀ/σ²` over the region's pixels; `slope(r, c)` is `J` at region pixel `(r, c)`.
-fn pixel_fisher(
-    f: &Formation,
+/// `Σ ω J Jᵀ` and `Σ ω J e` over the region's pixels of an image `width` pixels wide, with
+/// `ω = weight(i)` and `e = residual(i)` at image index `i` (pixels of weight 0 left out) and
+/// `slope(r, c)` the `J` of region pixel `(r, c)`. With `ω = 1/σ²` the first is the Fisher
+/// information under white noise.
+fn pixel_sums(
+    width: usize,
     region: &Region,
     slope: impl Fn(usize, usize) -> Vector4<f64>,
-) -> Matrix4<f64> {
-    let w = f.clean.width;
-    let mut fisher = Matrix4::zeros();
+    weight: impl Fn(usize) -> f64,
+    residual: impl Fn(usize) -> f64,
+) -> (Matrix4<f64>, Vector4<f64>) {
+    let mut matrix = Matrix4::zeros();
+    let mut rhs = Vector4::zeros();
     for r in region.r0..region.r1 {
         for c in region.c0..region.c1 {
-            let variance = f.noise_variance(r * w + c);
-            if variance > 0.0 {
+            let i = r * width + c;
+            let weight = weight(i);
+            if weight > 0.0 {
                 let j = slope(r - region.r0, c - region.c0);
-                fisher += j * j.transpose() / variance;
+                matrix += j * j.transpose() * weight;
+                rhs += j * (residual(i) * weight);
             }
         }
     }
-    fisher
+    (matrix, rhs)
 }
 
 /// JPEG block size, pixels.
@@ -259,17 +343,22 @@ fn dct_basis() -> [[f64; BLOCK]; BLOCK] {
 /// The Fisher sum of a grey JPEG file under the additive model (module documentation): over
 /// the 8 × 8 blocks the region touches (whole blocks inside the image; the encoder pads the
 /// last ones, left out), `Σ_uv D_uv D_uvᵀ / (σ̄² + variances_uv)`, with `D_uv` the block's
-/// DCT of `J`, `σ̄²` the block's mean sensor noise variance ([`jpeg_variances`]).
-fn jpeg_fisher(
+/// DCT of `J`, `σ̄²` the block's mean sensor noise variance ([`jpeg_variances`]); and
+/// `Σ_uv D_uv E_uv / (σ̄² + variances_uv)`, `E_uv` the block's DCT of `residual(i)` (image
+/// index `i`) on the region's pixels: the generalised least-squares sums under the model.
+fn jpeg_sums(
     f: &Formation,
     region: &Region,
     variances: &[f64; 64],
     slope: impl Fn(usize, usize) -> Vector4<f64>,
-) -> Matrix4<f64> {
+    residual: impl Fn(usize) -> f64,
+) -> (Matrix4<f64>, Vector4<f64>) {
     let (w, h) = (f.clean.width, f.clean.height);
     let basis = dct_basis();
     let mut fisher = Matrix4::zeros();
-    let mut block = [[Vector4::<f64>::zeros(); BLOCK]; BLOCK];
+    let mut rhs = Vector4::zeros();
+    // The region's J and residual on one block, the residual as a fifth component.
+    let mut block = [[Vector5::<f64>::zeros(); BLOCK]; BLOCK];
     for by in region.r0 / BLOCK..region.r1.div_ceil(BLOCK).min(h / BLOCK) {
         for bx in region.c0 / BLOCK..region.c1.div_ceil(BLOCK).min(w / BLOCK) {
             let mut noise = 0.0;
@@ -280,26 +369,29 @@ fn jpeg_fisher(
                     let inside =
                         (region.r0..region.r1).contains(&r) && (region.c0..region.c1).contains(&c);
                     *j = if inside {
-                        slope(r - region.r0, c - region.c0)
+                        slope(r - region.r0, c - region.c0).push(residual(r * w + c))
                     } else {
-                        Vector4::zeros()
+                        Vector5::zeros()
                     };
                 }
             }
             let white = noise / (BLOCK * BLOCK) as f64;
             // The DCT along the rows, then down the columns (the basis is separable).
-            let rows: [[Vector4<f64>; BLOCK]; BLOCK] = std::array::from_fn(|y| {
+            let rows: [[Vector5<f64>; BLOCK]; BLOCK] = std::array::from_fn(|y| {
                 std::array::from_fn(|u| (0..BLOCK).map(|x| block[y][x] * basis[u][x]).sum())
             });
             for (v, bv) in basis.iter().enumerate() {
                 for u in 0..BLOCK {
-                    let d: Vector4<f64> = (0..BLOCK).map(|y| rows[y][u] * bv[y]).sum();
-                    fisher += d * d.transpose() / (white + variances[v * BLOCK + u]);
+                    let de: Vector5<f64> = (0..BLOCK).map(|y| rows[y][u] * bv[y]).sum();
+                    let d = de.fixed_rows::<4>(0);
+                    let weight = 1.0 / (white + variances[v * BLOCK + u]);
+                    fisher += d * d.transpose() * weight;
+                    rhs += d * (de[4] * weight);
                 }
             }
         }
     }
-    fisher
+    (fisher, rhs)
 }
 
 /// The `q` quantile (e.g. 0.99) of the radial errors of an estimator at the bound over markers
@@ -369,7 +461,7 @@ mod tests {
     #[test]
     fn the_block_sum_equals_the_pixel_sum_under_white_noise() {
         // An orthonormal transform keeps a white noise white: with the same variance on every
-        // coefficient the DCT-domain sum is the pixel-domain one. Region (5..19) × (3..21) on a
+        // coefficient the DCT-domain sums (information and residual) are the pixel-domain ones. Region (5..19) × (3..21) on a
         // 24 × 24 image, arbitrary slopes.
         let clean = Plane::filled(24, 24, 0.5);
         let formation = |gaussian: f64| Formation {
@@ -382,6 +474,7 @@ mod tests {
                 shot: 0.0,
             }),
             jpeg_quality: None,
+            observed: None,
         };
         let region = Region {
             r0: 5,
@@ -393,11 +486,22 @@ mod tests {
             Vector4::from_fn(|k, _| ((r * 7 + c * 3 + k * 5) as f64 * 0.37).sin())
         };
         let (g, extra): (f64, f64) = (0.01, 2e-4);
-        let pixels = pixel_fisher(&formation((g * g + extra).sqrt()), &region, slope);
-        let blocks = jpeg_fisher(&formation(g), &region, &[extra; 64], slope);
+        let residual = |i: usize| ((i * 11) as f64 * 0.23).cos();
+        let white = formation((g * g + extra).sqrt());
+        let weight = |i: usize| 1.0 / white.noise_variance(i);
+        let pixels = pixel_sums(24, &region, slope, weight, residual);
+        let blocks = jpeg_sums(&formation(g), &region, &[extra; 64], slope, residual);
         assert!(
-            (pixels - blocks).norm() < 1e-9 * pixels.norm(),
-            "{pixels} vs {blocks}"
+            (pixels.0 - blocks.0).norm() < 1e-9 * pixels.0.norm(),
+            "{} vs {}",
+            pixels.0,
+            blocks.0
+        );
+        assert!(
+            (pixels.1 - blocks.1).norm() < 1e-9 * pixels.1.norm(),
+            "{} vs {}",
+            pixels.1,
+            blocks.1
         );
     }
 

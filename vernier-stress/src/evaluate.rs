@@ -6,7 +6,7 @@
 //! another ID = wrong ID, matched to a marker cut by the border = ignored, unmatched = false
 //! marker; expected markers left unmatched = missed.
 
-use crate::bound::BoundKind;
+use crate::bound::{BoundKind, KnownShapeErrors};
 use crate::markers::{Expectation, TruthMarker};
 use crate::scene::Scene;
 use std::f64::consts::FRAC_PI_2;
@@ -70,6 +70,9 @@ pub struct SceneResult {
     /// `(position error, its JPEG model's figure)` of the found markers in grey JPEG files
     /// ([`BoundKind::JpegModel`]), pixels.
     pub jpeg_modelled_errors: Vec<(f64, f64)>,
+    /// `(the reference estimators' errors, the JPEG model's figure)` of the same markers
+    /// ([`crate::bound::PositionBound::known_shape`]), pixels.
+    pub known_shape_errors: Vec<(KnownShapeErrors, f64)>,
     /// One verdict per detection.
     pub verdicts: Vec<Verdict>,
     /// Detector error or panic message, if detection failed.
@@ -119,6 +122,7 @@ pub fn evaluate(
                 normalised_errors: Vec::new(),
                 bounded_errors: Vec::new(),
                 jpeg_modelled_errors: Vec::new(),
+                known_shape_errors: Vec::new(),
                 verdicts: Vec::new(),
                 error: Some(e),
                 detect_ms,
@@ -180,6 +184,7 @@ pub fn evaluate(
         normalised_errors: Vec::new(),
         bounded_errors: Vec::new(),
         jpeg_modelled_errors: Vec::new(),
+        known_shape_errors: Vec::new(),
         verdicts,
         error: None,
         detect_ms,
@@ -198,6 +203,9 @@ pub fn evaluate(
                         BoundKind::JpegModel => &mut r.jpeg_modelled_errors,
                     }
                     .push((position_error, b.px));
+                    if let Some(k) = b.known_shape {
+                        r.known_shape_errors.push((k, b.px));
+                    }
                 }
                 r.found += 1;
                 r.position_errors.push(position_error);

@@ -8,7 +8,7 @@
 //! * [`scene`]: seeds → scenes (image + truth); [`markers`]: families and truth convention;
 //! * [`degrade`], [`clutter`], [`raster`], [`geometry`]: how the images are made;
 //! * [`bound`]: the Cramér–Rao bound of a marker's position on noisy scenes, and its JPEG
-//!   model on JPEG scenes;
+//!   model on JPEG scenes with two reference estimators that test it on the files;
 //! * [`evaluate`]: matching detections to the truth; [`suite`]: running and tallying many
 //!   scenes; [`dump`]: writing a scene for inspection; [`data`]: the shared data folder.
 //!

@@ -381,12 +381,21 @@ impl Generator {
             lap("illumination", &mut timings);
             gain
         });
-        let bounds = self.position_bounds(&spec, &layout, &deg, &plane, gain.as_ref(), fg - bg)?;
+        let image = finish(&plane, &deg, &mut rng)?;
+        lap("sensor", &mut timings);
+        let formation = bound::Formation {
+            clean: &plane,
+            gain: gain.as_ref(),
+            contrast: fg - bg,
+            blur_sigma: deg.blur_sigma,
+            noise: deg.noise,
+            jpeg_quality: deg.jpeg_quality,
+            observed: Some(&image),
+        };
+        let bounds = self.position_bounds(&spec, &layout, &deg, &formation)?;
         if bounds.iter().any(Option::is_some) {
             lap("bound", &mut timings);
         }
-        let image = finish(&plane, &deg, &mut rng)?;
-        lap("sensor", &mut timings);
         let truth = layout
             .markers
             .iter()
@@ -413,29 +422,17 @@ impl Generator {
     }
 
     /// The position bound of each expected marker of the scene's family, where the scene
-    /// has one ([`bound::kind`]); `clean` is the image before noise, `gain` its
-    /// illumination gain, `contrast` the dots' grey level minus the background's.
+    /// has one ([`bound::kind`]), under the scene's image `formation`.
     fn position_bounds(
         &self,
         spec: &SceneSpec,
         layout: &Layout,
         deg: &Degradations,
-        clean: &Plane,
-        gain: Option<&Plane>,
-        contrast: f64,
+        formation: &bound::Formation,
     ) -> Result<Vec<Option<PositionBound>>> {
-        let kind = match bound::kind(deg) {
-            Some(kind) if self.position_bounds => kind,
-            _ => return Ok(vec![None; layout.markers.len()]),
-        };
-        let formation = bound::Formation {
-            clean,
-            gain,
-            contrast,
-            blur_sigma: deg.blur_sigma,
-            noise: deg.noise,
-            jpeg_quality: deg.jpeg_quality,
-        };
+        if !self.position_bounds || bound::kind(deg).is_none() {
+            return Ok(vec![None; layout.markers.len()]);
+        }
         layout
             .markers
             .iter()
@@ -443,9 +440,7 @@ impl Generator {
                 if m.expectation != Expectation::Expected || m.kind.family() != spec.family {
                     return Ok(None);
                 }
-                let px =
-                    bound::position_bound(m.kind.layout(&self.stamps)?.as_ref(), m, &formation)?;
-                Ok(px.map(|px| PositionBound { px, kind }))
+                bound::position_bound(m.kind.layout(&self.stamps)?.as_ref(), m, formation)
             })
             .collect()
     }

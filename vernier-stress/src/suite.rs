@@ -2,7 +2,7 @@
 //! through `vernier::Detector` built from the scene's `DetectorSettings`, scoring, and the
 //! per-family, per-category tallies.
 
-use crate::bound;
+use crate::bound::{self, KnownShapeErrors};
 use crate::error::{Result, StressError};
 use crate::evaluate::{evaluate, SceneResult, Verdict};
 use crate::markers::{Expectation, Family};
@@ -189,6 +189,9 @@ pub struct Tally {
     /// `(position error, JPEG model's figure)` of the found markers in grey JPEG files,
     /// pixels ([`crate::bound`]).
     pub jpeg_modelled_errors: Vec<(f64, f64)>,
+    /// `(the reference estimators' errors, the JPEG model's figure)` of the same markers,
+    /// pixels ([`crate::bound::KnownShapeErrors`]).
+    pub known_shape_errors: Vec<(KnownShapeErrors, f64)>,
     /// Largest position error (pixels) and the seed of its scene, to reproduce it with
     /// `--only SEED`.
     pub worst: Option<(f64, u64)>,
@@ -220,6 +223,7 @@ impl Tally {
         self.normalised_errors.extend(&r.normalised_errors);
         self.bounded_errors.extend(&r.bounded_errors);
         self.jpeg_modelled_errors.extend(&r.jpeg_modelled_errors);
+        self.known_shape_errors.extend(&r.known_shape_errors);
         for &e in &r.position_errors {
             self.note_worst(e, o.scene.spec.seed);
         }
@@ -269,6 +273,7 @@ impl Tally {
         self.bounded_errors.extend(&other.bounded_errors);
         self.jpeg_modelled_errors
             .extend(&other.jpeg_modelled_errors);
+        self.known_shape_errors.extend(&other.known_shape_errors);
         if let Some((e, seed)) = other.worst {
             self.note_worst(e, seed);
         }
@@ -278,6 +283,15 @@ impl Tally {
         self.wrong.extend(&other.wrong);
         self.mirrored.0 += other.mirrored.0;
         self.mirrored.1 += other.mirrored.1;
+    }
+
+    /// `(error, JPEG model's figure)` of one reference estimator over the tally's JPEG
+    /// markers: the weighted one or the unweighted one ([`KnownShapeErrors`]), pixels.
+    pub fn reference_errors(&self, weighted: bool) -> Vec<(f64, f64)> {
+        self.known_shape_errors
+            .iter()
+            .map(|(k, m)| (if weighted { k.weighted } else { k.unweighted }, *m))
+            .collect()
     }
 
     /// Found fraction of the expected markers (1 when there are none).
@@ -298,6 +312,13 @@ impl Tally {
     pub fn normalised_stats(&self) -> Option<(f64, f64, f64)> {
         median_p99_max(&self.normalised_errors)
     }
+}
+
+/// The RMS of `e/b` over `(e, b)` pairs, e.g. position errors over their bounds (0 without
+/// pairs).
+pub fn rms_ratio(pairs: &[(f64, f64)]) -> f64 {
+    let mean_square = pairs.iter().map(|(e, b)| (e / b).powi(2)).sum::<f64>();
+    (mean_square / pairs.len().max(1) as f64).sqrt()
 }
 
 /// `(median, p99, max)` of `values` (nearest rank); `None` when empty.
@@ -413,6 +434,7 @@ impl Report {
     fn bound_markdown(&self, family: Family) -> String {
         let cramer_rao = self.bound_table(family, |t| &t.bounded_errors);
         let jpeg = self.bound_table(family, |t| &t.jpeg_modelled_errors);
+        let references = self.known_shape_table(family);
         let header = |bound: &str| {
             format!(
                 "| category | markers | {bound} median / p99 (px) | p99 at {bound} (px) | \
@@ -438,14 +460,24 @@ impl Report {
                 header("M")
             ));
         }
+        if !references.is_empty() {
+            out.push_str(&format!(
+                "\nThe same files read by two reference estimators that know the dot shape, grey \
+                 levels and blur (least squares linearised about the true pose; \
+                 `vernier_stress::bound::KnownShapeErrors`): every pixel weighted alike, as the \
+                 detector's fit does, and each DCT coefficient weighted by M's model.\n\n\
+                 | category | markers | unweighted p99 (px) | unweighted error/M RMS | \
+                 weighted p99 (px) | weighted error/M RMS |\n|---|---:|---:|---:|---:|---:|\n\
+                 {references}"
+            ));
+        }
         out
     }
 
     /// The rows of one bound table: per category and over all, the `(error, bound)` pairs
     /// that `pairs` picks from a tally. Empty without any.
     fn bound_table(&self, family: Family, pairs: impl Fn(&Tally) -> &Vec<(f64, f64)>) -> String {
-        let mut rows = String::new();
-        let mut row = |name: &str, t: &Tally| {
+        self.category_rows(family, |name, t| {
             let pairs = pairs(t);
             let errors: Vec<f64> = pairs.iter().map(|p| p.0).collect();
             let bounds: Vec<f64> = pairs.iter().map(|p| p.1).collect();
@@ -456,24 +488,52 @@ impl Report {
                 median_p99_max(&errors),
                 median_p99_max(&ratios),
             ) else {
-                return;
+                return None;
             };
-            let rms = (ratios.iter().map(|r| r * r).sum::<f64>() / ratios.len() as f64).sqrt();
-            rows.push_str(&format!(
+            Some(format!(
                 "| {name} | {} | {bm:.1e} / {bp:.1e} | {efficient:.1e} | {ep:.1e} | \
-                 {rms:.2} / {rp:.2} |\n",
-                bounds.len()
-            ));
-        };
-        let mut any = false;
+                 {:.2} / {rp:.2} |\n",
+                bounds.len(),
+                rms_ratio(pairs)
+            ))
+        })
+    }
+
+    /// The rows of the reference estimators' table (`Tally::known_shape_errors`): per
+    /// category and over all, each estimator's p99 and RMS error over the JPEG model's figure.
+    fn known_shape_table(&self, family: Family) -> String {
+        self.category_rows(family, |name, t| {
+            let (unweighted, weighted) = (t.reference_errors(false), t.reference_errors(true));
+            let p99 = |pairs: &[(f64, f64)]| {
+                let errors: Vec<f64> = pairs.iter().map(|p| p.0).collect();
+                median_p99_max(&errors).map(|(_, p99, _)| p99)
+            };
+            Some(format!(
+                "| {name} | {} | {:.1e} | {:.2} | {:.1e} | {:.2} |\n",
+                unweighted.len(),
+                p99(&unweighted)?,
+                rms_ratio(&unweighted),
+                p99(&weighted)?,
+                rms_ratio(&weighted)
+            ))
+        })
+    }
+
+    /// One row per category of `family` and one over all, as `row(name, tally)` writes them
+    /// (`None`: no row). Empty when no category has a row.
+    fn category_rows(
+        &self,
+        family: Family,
+        mut row: impl FnMut(&str, &Tally) -> Option<String>,
+    ) -> String {
+        let mut rows = String::new();
         for ((f, c), t) in &self.cells {
             if *f == family {
-                any |= !pairs(t).is_empty();
-                row(c.name(), t);
+                rows.extend(row(c.name(), t));
             }
         }
-        if any {
-            row("**all**", &self.family_total(family));
+        if !rows.is_empty() {
+            rows.extend(row("**all**", &self.family_total(family)));
         }
         rows
     }
