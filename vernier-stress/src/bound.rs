@@ -461,8 +461,8 @@ mod tests {
     #[test]
     fn the_block_sum_equals_the_pixel_sum_under_white_noise() {
         // An orthonormal transform keeps a white noise white: with the same variance on every
-        // coefficient the DCT-domain sums (information and residual) are the pixel-domain ones. Region (5..19) × (3..21) on a
-        // 24 × 24 image, arbitrary slopes.
+        // coefficient the DCT-domain sums (information and residual) are the pixel-domain
+        // ones. Region (5..19) × (3..21) on a 24 × 24 image, arbitrary slopes and residual.
         let clean = Plane::filled(24, 24, 0.5);
         let formation = |gaussian: f64| Formation {
             clean: &clean,
