@@ -3,13 +3,16 @@
 //!
 //! ```sh
 //! cargo bench -p vernier-stress --bench real_views -- [--draws N] [--seed S] \
-//!     [--category NAME] [--image TEXT] [--only SEED] [--dump DIR] [--threads N]
+//!     [--category NAME] [--image TEXT] [--only SEED] [--dump DIR] [--threads N] \
+//!     [--severity X]
 //! ```
 //!
 //! `--draws` views per image and category (default 8: 11 images × 10 categories × 8 = 880
 //! scenes), `--image` keeps the images whose file name contains TEXT, `--only SEED` runs the
 //! one scene of that seed (with the same `--seed` and `--draws`), `--dump DIR` writes every
 //! failing scene (or the `--only` one) as a 16-bit PNG with a line of its severities.
+//! `--severity X` (default 1) draws the same views X times harsher, past the issue's ranges
+//! ([`vernier_stress::real::generate_harsher`]): where detection breaks, not a target.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -19,11 +22,12 @@ use std::sync::Mutex;
 use std::time::Instant;
 use vernier::Detector;
 use vernier_stress::real::{
-    evaluate, generate, real_seeds, RealCategory, RealImage, RealResult, RealScene, REAL_CASES,
+    evaluate, generate_harsher, real_seeds, RealCategory, RealImage, RealResult, RealScene,
+    REAL_CASES,
 };
 
 const USAGE: &str = "usage: real_views [--draws N] [--seed S] [--category NAME] [--image TEXT] \
-[--only SEED] [--dump DIR] [--threads N]";
+[--only SEED] [--dump DIR] [--threads N] [--severity X]";
 
 struct Args {
     draws: usize,
@@ -33,6 +37,7 @@ struct Args {
     only: Option<u64>,
     dump: Option<PathBuf>,
     threads: usize,
+    severity: f64,
 }
 
 fn parse() -> Result<Args, String> {
@@ -44,6 +49,7 @@ fn parse() -> Result<Args, String> {
         only: None,
         dump: None,
         threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+        severity: 1.0,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -76,6 +82,13 @@ fn parse() -> Result<Args, String> {
             "--threads" => {
                 let v = value()?;
                 a.threads = v.parse().map_err(|_| bad(&v))?;
+            }
+            "--severity" => {
+                let v = value()?;
+                a.severity = v.parse().map_err(|_| bad(&v))?;
+                if !(a.severity.is_finite() && a.severity > 0.0) {
+                    return Err(bad(&v));
+                }
             }
             "-h" | "--help" => return Err(USAGE.to_string()),
             other => return Err(format!("unknown argument `{other}`\n{USAGE}")),
@@ -180,7 +193,8 @@ fn main() -> ExitCode {
                         break;
                     };
                     let real = &images[image];
-                    let (result, scene) = run_scene(real, image, category, seed, &mut detectors);
+                    let (result, scene) =
+                        run_scene(real, image, (category, seed, args.severity), &mut detectors);
                     let failed = result.found < result.expected
                         || result.wrong > 0
                         || result.false_markers > 0
@@ -222,8 +236,13 @@ fn main() -> ExitCode {
         mut failing,
     } = tables.into_inner().unwrap_or_else(|e| e.into_inner());
     println!(
-        "## vernier real views: {total} scenes from seed {} ({} per image and category)\n",
-        args.seed, args.draws
+        "## vernier real views: {total} scenes from seed {} ({} per image and category{})\n",
+        args.seed,
+        args.draws,
+        match args.severity == 1.0 {
+            true => String::new(),
+            false => format!(", severity ×{}", args.severity),
+        }
     );
     println!(
         "Every HP code and stamp image of the data folder, turned and magnified 0.7–1, under \
@@ -272,11 +291,10 @@ impl Row {
 fn run_scene(
     real: &RealImage,
     image: usize,
-    category: RealCategory,
-    seed: u64,
+    (category, seed, severity): (RealCategory, u64, f64),
     detectors: &mut BTreeMap<usize, Detector>,
 ) -> (RealResult, Option<RealScene>) {
-    let scene = match generate(real, category, seed) {
+    let scene = match generate_harsher(real, category, seed, severity) {
         Ok(s) => s,
         Err(e) => {
             let result = RealResult {

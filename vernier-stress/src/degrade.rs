@@ -69,7 +69,7 @@ impl Degradation {
 /// Tilt of the marker plane.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Tilt {
-    /// Tilt angle, radians (≤ 25°).
+    /// Tilt angle, radians (≤ 25° as drawn; up to 60° made [`Degradations::harsher`]).
     pub angle: f64,
     /// Direction of the tilt axis in the image, radians.
     pub axis: f64,
@@ -204,6 +204,34 @@ impl Degradations {
             }
         }
         d
+    }
+
+    /// The same draw made `severity` times harsher (1: unchanged), for probing past the
+    /// suite's ranges without moving its random stream: tilt, blur and noise scale by it,
+    /// JPEG loses `severity` times as much quality (from 100, at least 5), and the dimmest
+    /// gain and a colour cast's dimmed channels are raised to its power.
+    pub fn harsher(mut self, severity: f64) -> Self {
+        if let Some(t) = self.perspective.as_mut() {
+            t.angle = (t.angle * severity).min(60f64.to_radians());
+        }
+        self.blur_sigma *= severity;
+        if let Some(n) = self.noise.as_mut() {
+            n.gaussian *= severity;
+            n.shot *= severity;
+        }
+        if let Some(q) = self.jpeg_quality.as_mut() {
+            let lost = f64::from(100 - *q) * severity;
+            *q = (100.0 - lost).clamp(5.0, 100.0).round() as u8;
+        }
+        if let Some(i) = self.illumination.as_mut() {
+            i.min_gain = i.min_gain.powf(severity);
+        }
+        if let Some(c) = self.colour.as_mut() {
+            for g in c.gains.iter_mut() {
+                *g = g.powf(severity);
+            }
+        }
+        self
     }
 
     /// One line describing the severities.

@@ -278,11 +278,25 @@ const SALT: u64 = 0x7265_616c_2d76_3031;
 
 /// Generates the view `seed` of `real` in `category`.
 pub fn generate(real: &RealImage, category: RealCategory, seed: u64) -> Result<RealScene> {
+    generate_harsher(real, category, seed, 1.0)
+}
+
+/// [`generate`] with every drawn severity made `severity` times harsher
+/// ([`Degradations::harsher`]; 1 is [`generate`]'s view): also the shrinking (magnification
+/// `m^severity`), the blur's cap (`0.2·severity` of the finest period, at most 0.3), the
+/// markers' contrast under low contrast (divided by it) and the tone curve's exponent (raised
+/// to it). The random stream is the same at every severity.
+pub fn generate_harsher(
+    real: &RealImage,
+    category: RealCategory,
+    seed: u64,
+    severity: f64,
+) -> Result<RealScene> {
     let mut rng = SmallRng::seed_from_u64(seed ^ SALT);
     let (kinds, tone) = category.draw(&mut rng);
-    let d = Degradations::draw(&kinds, &mut rng);
+    let d = Degradations::draw(&kinds, &mut rng).harsher(severity);
     let angle = rng.random_range(0.0..TAU);
-    let magnification = log_uniform(&mut rng, 0.7, 1.0);
+    let magnification = log_uniform(&mut rng, 0.7, 1.0).powf(severity);
     let (homography, size) = view_homography(&real.plane, angle, magnification, &d)?;
     let mut plane = warp_into(&real.plane, &homography, 2, real.fill, size);
     let mut parts = vec![format!(
@@ -295,12 +309,12 @@ pub fn generate(real: &RealImage, category: RealCategory, seed: u64) -> Result<R
         .map(|e| e.period_px * magnification)
         .fold(f64::INFINITY, f64::min);
     if kinds.contains(&Degradation::Blur) {
-        let sigma = d.blur_sigma.min(0.2 * finest);
+        let sigma = d.blur_sigma.min((0.2 * severity).min(0.3) * finest);
         gaussian_blur(&mut plane.data, plane.width, plane.height, sigma);
         parts.push(format!("blur σ {sigma:.2} px added"));
     }
     if d.low_contrast {
-        let c = rng.random_range(0.10..0.20);
+        let c = rng.random_range(0.10..0.20) / severity;
         let offset = rng.random_range(0.0..1.0 - c);
         let (lo, hi) = real.marker_levels;
         let gain = c as f32 / (hi - lo).max(1e-6);
@@ -310,7 +324,7 @@ pub fn generate(real: &RealImage, category: RealCategory, seed: u64) -> Result<R
         parts.push(format!("markers' contrast {c:.2} from {offset:.2}"));
     }
     if tone {
-        let gamma = log_uniform(&mut rng, 0.4, 2.5);
+        let gamma = log_uniform(&mut rng, 0.4, 2.5).powf(severity);
         for v in plane.data.iter_mut() {
             *v = v.clamp(0.0, 1.0).powf(gamma as f32);
         }

@@ -39,6 +39,7 @@ use crate::phase::{
 };
 use crate::pose::{rotate2, Pose};
 use finders::FinderScanner;
+use marker_id::ReadingView;
 use nalgebra::Vector2;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 
@@ -624,47 +625,41 @@ impl Measure<'_> {
             Ok(found) => found,
             Err(why) => return reject(why),
         };
-        let Some(reading) = marker_id::read_id(image, triple.polarity, &dots) else {
-            return reject("ID dots outside the image or without contrast");
+        let input = ReadInput {
+            triple,
+            analysis: &analysis,
+            window_center,
+            grid,
+            dots,
+            dots_std,
         };
-        // An uncertain ID is never reported as a marker.
-        if reading.confidence < self.params.min_id_confidence {
-            return reject(&format!(
-                "ID {} read with confidence {:.3} < {} (ID margin {:.3}, other edge {:.3})",
-                reading.id,
-                reading.confidence,
-                self.params.min_id_confidence,
-                reading.parts.0,
-                reading.parts.1
-            ));
-        }
-        let (finders, grid, dots, dots_std) = if reading.mirrored {
-            let mirrored = triple.mirrored();
-            match fine::locate(&analysis.planes, &mirrored, window_center) {
-                Some(g) => match on_its_dots(image, g, &mirrored) {
-                    Ok((g, dots, std)) => (mirrored, g, dots, std),
-                    Err(why) => return reject(&format!("mirrored: {why}")),
-                },
-                None => return reject("mirrored grid does not fit"),
+        let view = ReadingView::raw(image);
+        let read = match self.read_marker(image, &view, &input) {
+            Ok(read) => read,
+            // Blur beyond a quarter period merges a dot's level with its neighbours' spill:
+            // read again with the detail at the module's scale restored. Only there: on a
+            // sharp marker an undecided dot is an occluder's or a defect's, which sharpening
+            // would decide.
+            Err(why) => {
+                match ReadingView::sharpened_if_blurred(image, triple.polarity, &input.dots)
+                    .ok_or(())
+                    .and_then(|v| self.read_marker(image, &v, &input).map_err(|_| ()))
+                {
+                    Ok(read) => {
+                        log::debug!("HP code ID {} read sharpened", read.reading.id);
+                        read
+                    }
+                    Err(()) => return reject(&why),
+                }
             }
-        } else {
-            (*triple, grid, dots, dots_std)
         };
-        // A grid a whole period off the marker: every check inside the field passes.
-        if !marker_id::field_ends_at_its_edges(image, triple.polarity, &dots) {
-            return reject("dot field does not end at its bottom and right edges");
-        }
-        // Three finder-like shapes around something that is not this marker's dot grid.
-        let Some(light) = marker_id::FieldLight::measure(image, triple.polarity, &dots) else {
-            return reject("dot field outside the image");
-        };
-        if !marker_id::corners_consistent(image, triple.polarity, &dots, &light) {
-            return reject("corners do not show three finders and a block of dots");
-        }
-        let support = marker_id::grid_support(&light);
-        if support < MIN_GRID_SUPPORT {
-            return reject(&format!("grid support {support:.3} < {MIN_GRID_SUPPORT}"));
-        }
+        let MarkerRead {
+            reading,
+            finders,
+            grid,
+            dots,
+            dots_std,
+        } = read;
         let (icx, icy) = image.center();
         let image_center = Vector2::new(icx as f64, icy as f64);
         let at = grid.dots.center - image_center;
@@ -743,6 +738,64 @@ impl Measure<'_> {
             phase_std,
             yaw_std,
         }))
+    }
+
+    /// Reads the ID of the marker whose dots `input` locates, and checks that it is one: its
+    /// ID confidence, its handedness (a mirrored marker's grid located again from the
+    /// swapped finders), the ends of its field, its corners and the grid's support. Levels
+    /// are read on `view`; the grid is located on `image`. `Err` says why it is no marker.
+    fn read_marker(
+        &self,
+        image: &GreyImage,
+        view: &ReadingView,
+        input: &ReadInput,
+    ) -> std::result::Result<MarkerRead, String> {
+        let polarity = input.triple.polarity;
+        let reading = marker_id::read_id(&view.image, polarity, &view.local(&input.dots))
+            .ok_or("ID dots outside the image or without contrast")?;
+        // An uncertain ID is never reported as a marker.
+        if reading.confidence < self.params.min_id_confidence {
+            return Err(format!(
+                "ID {} read with confidence {:.3} < {} (ID margin {:.3}, other edge {:.3})",
+                reading.id,
+                reading.confidence,
+                self.params.min_id_confidence,
+                reading.parts.0,
+                reading.parts.1
+            ));
+        }
+        let (finders, grid, dots, dots_std) = if reading.mirrored {
+            let mirrored = input.triple.mirrored();
+            let g = fine::locate(&input.analysis.planes, &mirrored, input.window_center)
+                .ok_or("mirrored grid does not fit")?;
+            let (g, dots, std) =
+                on_its_dots(image, g, &mirrored).map_err(|why| format!("mirrored: {why}"))?;
+            (mirrored, g, dots, std)
+        } else {
+            (*input.triple, input.grid, input.dots, input.dots_std)
+        };
+        let local = view.local(&dots);
+        // A grid a whole period off the marker: every check inside the field passes.
+        if !marker_id::field_ends_at_its_edges(&view.image, polarity, &local) {
+            return Err("dot field does not end at its bottom and right edges".into());
+        }
+        // Three finder-like shapes around something that is not this marker's dot grid.
+        let light = marker_id::FieldLight::measure(&view.image, polarity, &local)
+            .ok_or("dot field outside the image")?;
+        if !marker_id::corners_consistent(&view.image, polarity, &local, &light) {
+            return Err("corners do not show three finders and a block of dots".into());
+        }
+        let support = marker_id::grid_support(&light);
+        if support < MIN_GRID_SUPPORT {
+            return Err(format!("grid support {support:.3} < {MIN_GRID_SUPPORT}"));
+        }
+        Ok(MarkerRead {
+            reading,
+            finders,
+            grid,
+            dots,
+            dots_std,
+        })
     }
 
     /// Pose of the marker from its grid (window and image centres in image pixels).
@@ -852,6 +905,29 @@ fn on_its_dots(
     }
     let center_std = fit.map(|f| f.center_std);
     Ok((grid.renumbered(shift), dots.renumbered(shift), center_std))
+}
+
+/// What [`Measure::read_marker`] reads from: the finders, the window's analysis and the
+/// grid located on the marker's dots ([`on_its_dots`]).
+struct ReadInput<'a> {
+    triple: &'a FinderTriple,
+    analysis: &'a PhaseAnalysis,
+    /// Centre of the analysis window, image pixels.
+    window_center: Vector2<f64>,
+    grid: fine::MarkerGrid,
+    dots: marker_id::DotGrid,
+    /// Standard deviation of the dots' fitted centre, periods (`None` without a fit).
+    dots_std: Option<f64>,
+}
+
+/// A marker read and checked: its ID reading, and its finders, grid and dots, mirrored where
+/// the reading says so.
+struct MarkerRead {
+    reading: marker_id::IdReading,
+    finders: FinderTriple,
+    grid: fine::MarkerGrid,
+    dots: marker_id::DotGrid,
+    dots_std: Option<f64>,
 }
 
 /// Whether the centre the pose is computed from (`grid`'s, its planes' phase σ `phase_std`,

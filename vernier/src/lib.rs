@@ -99,6 +99,7 @@ pub mod output;
 mod parallel;
 pub mod pattern_file;
 pub mod phase;
+mod sharpen;
 pub use grey_image::{parse_polarity_setting, DecodeLimits, GreyImage, PixelFormat, Polarity};
 pub use phase::{LobePrior, PhaseAnalysis, PhaseEngine, PhaseParams, PhasePlane, Refinement};
 pub mod pose;

@@ -17,6 +17,7 @@ use super::{
 };
 use crate::binarize::{Region, Regions, ThresholdMap};
 use crate::grey_image::{GreyImage, Polarity};
+use crate::sharpen::{self, Sharpener};
 use nalgebra::Vector2;
 
 /// Half-side of the rescue's window, candidate modules: the ring's outer edge at 3.5 modules,
@@ -109,7 +110,10 @@ pub(super) fn candidates(all: Vec<Unexplained>, found: &[Finder]) -> Vec<Unexpla
 
 /// The finder whose centre `candidate` may be, read from a window around it binarised at one
 /// global threshold, mid-way between the most material gap and the least material ring that
-/// its [`ring_profile`] shows. `thresholds` and `labels` are reused buffers.
+/// its [`ring_profile`] shows. Where the rays show a gap and a ring whose levels blur has
+/// merged, so that no threshold lies between them, the profile and the window are read again
+/// sharpened at the candidate's module ([`crate::sharpen`]). `thresholds` and `labels` are
+/// reused buffers.
 pub(super) fn blurred_finder(
     thresholds: &mut ThresholdMap,
     labels: &mut Regions,
@@ -117,19 +121,63 @@ pub(super) fn blurred_finder(
     candidate: &Unexplained,
     floor: f32,
 ) -> Option<Finder> {
-    let (gap, ring) = ring_profile(image, candidate, floor)?;
+    let (origin, size) = window_around(image, candidate)?;
+    let raw = |x: f64, y: f64| image.bilinear(x, y);
+    let (window, levels) = match ring_profile(raw, candidate, floor) {
+        RingProfile::Separated(gap, ring) => {
+            let window = image.crop(origin.0, origin.1, size.0, size.1).ok()?;
+            (window, (gap, ring))
+        }
+        RingProfile::Merged => {
+            let half = sharpen::box_half_side(candidate.module());
+            let (part, (c0, r0)) = sharpen::part_around(image, origin, size, half)?;
+            let sharpener = Sharpener::new(&part);
+            let (dx, dy) = (c0 as f64, r0 as f64);
+            let sample = |x: f64, y: f64| sharpener.at(x - dx, y - dy, half);
+            // The sharpening amplifies white noise about `1 + gain` times, the floor with it.
+            let floor = floor * (1.0 + sharpen::GAIN);
+            let RingProfile::Separated(gap, ring) = ring_profile(sample, candidate, floor) else {
+                return None;
+            };
+            let window = sharpener.window((origin.0 - c0, origin.1 - r0), size, half)?;
+            (window, (gap, ring))
+        }
+        RingProfile::Absent => return None,
+    };
+    read_window(thresholds, labels, &window, origin, candidate, levels)
+}
+
+/// A window `((col0, row0), (width, height))`, image pixels.
+type WindowRect = ((usize, usize), (usize, usize));
+
+/// The window read around `candidate`: [`REACH`] modules and two pixels each way, clipped to
+/// the image.
+fn window_around(image: &GreyImage, candidate: &Unexplained) -> Option<WindowRect> {
     let reach = REACH * candidate.module() + 2.0;
     let col0 = (candidate.center.x - reach).floor().max(0.0) as usize;
     let row0 = (candidate.center.y - reach).floor().max(0.0) as usize;
     let col1 = ((candidate.center.x + reach).ceil() as usize).min(image.width());
     let row1 = ((candidate.center.y + reach).ceil() as usize).min(image.height());
-    let window = image
-        .crop(col0, row0, col1.checked_sub(col0)?, row1.checked_sub(row0)?)
-        .ok()?;
-    thresholds.compute_uniform(&window, candidate.sign() * 0.5 * (gap + ring));
-    labels.label(&window, thresholds, 0.0);
+    Some((
+        (col0, row0),
+        (col1.checked_sub(col0)?, row1.checked_sub(row0)?),
+    ))
+}
+
+/// The finder centred within a module of `candidate` in `window` (whose pixel `(0, 0)` is
+/// image pixel `origin`) binarised half-way between the `(gap, ring)` levels; image frame.
+fn read_window(
+    thresholds: &mut ThresholdMap,
+    labels: &mut Regions,
+    window: &GreyImage,
+    origin: (usize, usize),
+    candidate: &Unexplained,
+    (gap, ring): (f32, f32),
+) -> Option<Finder> {
+    thresholds.compute_uniform(window, candidate.sign() * 0.5 * (gap + ring));
+    labels.label(window, thresholds, 0.0);
     let regions = &labels.regions;
-    let origin = Vector2::new(col0 as f64, row0 as f64);
+    let origin = Vector2::new(origin.0 as f64, origin.1 as f64);
     regions
         .iter()
         .filter(|r| r.bright == candidate.bright)
@@ -142,15 +190,34 @@ pub(super) fn blurred_finder(
         .max_by(|a, b| a.score.total_cmp(&b.score))
 }
 
-/// The material levels `(gap, ring)` around a candidate centre: the most material gap and the
-/// least material ring over the rays that leave the centre into a gap at least `floor / 2`
-/// less material than the centre and then meet a ring at least as much more material than the
-/// gap, within [`REACH`]. `None` when fewer than [`MIN_RAYS`] rays do, when no one threshold
-/// lies between every gap and every ring, or when a ray leaves the image.
-fn ring_profile(image: &GreyImage, c: &Unexplained, floor: f32) -> Option<(f32, f32)> {
+/// What the rays around a candidate centre show ([`ring_profile`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum RingProfile {
+    /// A gap and then a ring on nearly every ray, and one threshold between every gap and
+    /// every ring: the most material gap and the least material ring.
+    Separated(f32, f32),
+    /// A gap and then a ring on nearly every ray, but some ray's gap at least as material as
+    /// another's ring (blur of over half a module, a grey gap).
+    Merged,
+    /// No gap and ring on enough rays (most candidates: clutter), or a ray leaves the image.
+    Absent,
+}
+
+/// What the rays around a candidate centre show, the image read through `sample` (intensity
+/// at a point, `None` outside): the rays that count leave the centre into a gap at least
+/// `floor / 2` less material than the centre and then meet a ring at least as much more
+/// material than the gap, within [`REACH`]; [`MIN_RAYS`] must, and the most material of
+/// their gaps and the least material of their rings are compared.
+fn ring_profile(
+    sample: impl Fn(f64, f64) -> Option<f32>,
+    c: &Unexplained,
+    floor: f32,
+) -> RingProfile {
     let sign = c.sign();
     let step = c.module() / STEPS_PER_MODULE;
-    let centre = sign * image.bilinear(c.center.x, c.center.y)?;
+    let Some(centre) = sample(c.center.x, c.center.y).map(|v| sign * v) else {
+        return RingProfile::Absent;
+    };
     let depth = 0.5 * floor;
     let (mut gap, mut ring, mut missed) = (f32::NEG_INFINITY, f32::INFINITY, 0);
     for k in 0..RAYS {
@@ -159,7 +226,10 @@ fn ring_profile(image: &GreyImage, c: &Unexplained, floor: f32) -> Option<(f32, 
         let mut profile = [0.0f32; PROFILE_STEPS];
         for (j, v) in profile.iter_mut().enumerate() {
             let reach = (j + 1) as f64;
-            *v = sign * image.bilinear(c.center.x + dx * reach, c.center.y + dy * reach)?;
+            let Some(level) = sample(c.center.x + dx * reach, c.center.y + dy * reach) else {
+                return RingProfile::Absent;
+            };
+            *v = sign * level;
         }
         match gap_and_ring(&profile, depth) {
             Some((g, r)) if centre - g >= depth => {
@@ -170,12 +240,15 @@ fn ring_profile(image: &GreyImage, c: &Unexplained, floor: f32) -> Option<(f32, 
             _ => {
                 missed += 1;
                 if missed > RAYS - MIN_RAYS {
-                    return None;
+                    return RingProfile::Absent;
                 }
             }
         }
     }
-    (gap < ring).then_some((gap, ring))
+    match gap < ring {
+        true => RingProfile::Separated(gap, ring),
+        false => RingProfile::Merged,
+    }
 }
 
 /// The first valley of `profile` (material levels outwards from a centre) and the peak after
