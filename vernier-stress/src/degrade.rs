@@ -69,7 +69,7 @@ impl Degradation {
 /// Tilt of the marker plane.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Tilt {
-    /// Tilt angle, radians (≤ 25° as drawn; up to 60° made [`Degradations::harsher`]).
+    /// Tilt angle, radians (≤ 25° as drawn; up to 60° after [`Degradations::harsher`]).
     pub angle: f64,
     /// Direction of the tilt axis in the image, radians.
     pub axis: f64,

@@ -641,15 +641,13 @@ impl Measure<'_> {
             // sharp marker an undecided dot is an occluder's or a defect's, which sharpening
             // would decide.
             Err(why) => {
-                match ReadingView::sharpened_if_blurred(image, triple.polarity, &input.dots)
-                    .ok_or(())
-                    .and_then(|v| self.read_marker(image, &v, &input).map_err(|_| ()))
-                {
-                    Ok(read) => {
+                let sharp = ReadingView::sharpened_if_blurred(image, triple.polarity, &input.dots);
+                match sharp.and_then(|view| self.read_marker(image, &view, &input).ok()) {
+                    Some(read) => {
                         log::debug!("HP code ID {} read sharpened", read.reading.id);
                         read
                     }
-                    Err(()) => return reject(&why),
+                    None => return reject(&why),
                 }
             }
         };

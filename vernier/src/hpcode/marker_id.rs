@@ -12,7 +12,7 @@
 use crate::grey_image::{GreyImage, Polarity};
 use crate::level_surface::{LevelSample, LevelSurface};
 use crate::order_stats::robust_sigma;
-use crate::sharpen::{self, Sharpener};
+use crate::sharpen::Sharpener;
 use nalgebra::Vector2;
 use std::f64::consts::PI;
 
@@ -807,11 +807,9 @@ impl<'a> ReadingView<'a> {
         if width == 0 || height == 0 {
             return None;
         }
-        // A module is half a period; the part read around the rectangle holds the boxes of
-        // its edge pixels.
-        let half = sharpen::box_half_side(0.25 * (dots.step_x.norm() + dots.step_y.norm()));
-        let (part, (c0, r0)) = sharpen::part_around(image, (col0, row0), (width, height), half)?;
-        let sharp = Sharpener::new(&part).window((col0 - c0, row0 - r0), (width, height), half)?;
+        // A module is half a period.
+        let module = 0.25 * (dots.step_x.norm() + dots.step_y.norm());
+        let sharp = Sharpener::around(image, (col0, row0), (width, height), module)?.window()?;
         Some(ReadingView {
             image: std::borrow::Cow::Owned(sharp),
             origin: Vector2::new(col0 as f64, row0 as f64),

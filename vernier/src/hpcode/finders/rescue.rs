@@ -129,18 +129,14 @@ pub(super) fn blurred_finder(
             (window, (gap, ring))
         }
         RingProfile::Merged => {
-            let half = sharpen::box_half_side(candidate.module());
-            let (part, (c0, r0)) = sharpen::part_around(image, origin, size, half)?;
-            let sharpener = Sharpener::new(&part);
-            let (dx, dy) = (c0 as f64, r0 as f64);
-            let sample = |x: f64, y: f64| sharpener.at(x - dx, y - dy, half);
+            let sharpener = Sharpener::around(image, origin, size, candidate.module())?;
             // The sharpening amplifies white noise about `1 + gain` times, the floor with it.
             let floor = floor * (1.0 + sharpen::GAIN);
+            let sample = |x: f64, y: f64| sharpener.at(x, y);
             let RingProfile::Separated(gap, ring) = ring_profile(sample, candidate, floor) else {
                 return None;
             };
-            let window = sharpener.window((origin.0 - c0, origin.1 - r0), size, half)?;
-            (window, (gap, ring))
+            (sharpener.window()?, (gap, ring))
         }
         RingProfile::Absent => return None,
     };
