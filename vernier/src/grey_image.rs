@@ -428,6 +428,31 @@ impl GreyImage {
         self.window(col0 as i64, row0 as i64, width, height, 0.0)
     }
 
+    /// The 3 × 3 binomial low-pass `[1 2 1]/4` along each axis, edges replicated: a Gaussian
+    /// of σ ≈ 0.71 px that keeps one-pixel-wide structure and lowers white noise's standard
+    /// deviation to 0.375 of its own (the 3-tap sibling of Burt and Adelson's 5-tap kernel,
+    /// *The Laplacian pyramid as a compact image code*, IEEE Trans. Commun., 1983).
+    pub(crate) fn binomial_3x3(&self) -> GreyImage {
+        let (w, h) = (self.width, self.height);
+        let smooth = |prev: f32, at: f32, next: f32| 0.25 * (prev + next) + 0.5 * at;
+        let mut rows = vec![0.0f32; w * h];
+        for (src, dst) in self.pixels.chunks_exact(w).zip(rows.chunks_exact_mut(w)) {
+            for (c, out) in dst.iter_mut().enumerate() {
+                let (left, right) = (src[c.saturating_sub(1)], src[(c + 1).min(w - 1)]);
+                *out = smooth(left, src[c], right);
+            }
+        }
+        let mut pixels = vec![0.0f32; w * h];
+        for (r, out) in pixels.chunks_exact_mut(w).enumerate() {
+            let (up, down) = (r.saturating_sub(1), (r + 1).min(h - 1));
+            let row = |i: usize| &rows[i * w..(i + 1) * w];
+            for (((o, &a), &m), &b) in out.iter_mut().zip(row(up)).zip(row(r)).zip(row(down)) {
+                *o = smooth(a, m, b);
+            }
+        }
+        GreyImage { pixels, ..*self }
+    }
+
     /// Transposed image (rows become columns): `out(col = r, row = c) = in(col = c, row = r)`.
     pub fn transposed(&self) -> GreyImage {
         let (w, h) = (self.width, self.height);
@@ -802,6 +827,37 @@ pub(crate) fn bin_2x2(pixels: &[f32], cols: usize, rb: usize, cb: usize, out: &m
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An impulse spreads into the binomial's weights `[1 2 1]ᵀ[1 2 1]/16` (so `Σw² = (6/16)²`,
+    /// the finder search's noise gain), a flat image and its edges stay flat.
+    #[test]
+    fn binomial_3x3_spreads_an_impulse_into_its_weights() {
+        let mut pixels = vec![0.25f32; 5 * 5];
+        pixels[2 * 5 + 2] = 1.25;
+        let image = GreyImage::new(5, 5, pixels).unwrap_or_else(|e| panic!("{e}"));
+        let smoothed = image.binomial_3x3();
+        let weights = [1.0, 2.0, 1.0];
+        let mut sum_squares = 0.0;
+        for r in 0..5 {
+            for c in 0..5 {
+                let v = smoothed.get(c, r).unwrap_or(f32::NAN) - 0.25;
+                let near = (1..=3).contains(&r) && (1..=3).contains(&c);
+                let expected = if near {
+                    weights[r - 1] * weights[c - 1] / 16.0
+                } else {
+                    0.0
+                };
+                assert!(
+                    (v - expected).abs() < 1e-6,
+                    "({c}, {r}): {v} against {expected}"
+                );
+                sum_squares += v * v;
+            }
+        }
+        assert!((sum_squares.sqrt() - 0.375).abs() < 1e-6);
+        let flat = GreyImage::new(3, 4, vec![0.5; 12]).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(flat.binomial_3x3(), flat);
+    }
 
     #[test]
     fn bilinear_interpolates_and_rejects_outside() {

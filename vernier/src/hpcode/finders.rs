@@ -18,7 +18,9 @@
 //! dot grid have no such nesting; what else might is rejected by the marker geometry and grid.
 //!
 //! A blurred finder whose gap no level of the local range opens is read in a window at a
-//! threshold between its own gap's and ring's levels ([`rescue`]).
+//! threshold between its own gap's and ring's levels ([`rescue`]). A small finder (modules
+//! under ~4 px) that noise breaks up at full resolution is read on the finest level smoothed
+//! as well (`GreyImage::binomial_3x3`).
 
 use crate::binarize::{Region, Regions, ThresholdMap, BLOCK};
 use crate::grey_image::{GreyImage, Polarity};
@@ -63,6 +65,16 @@ const MIN_CENTER_AREA: f64 = 12.0;
 const MIN_BOX_FILL: f64 = 0.4;
 /// Largest bounding-box aspect ratio of ring and centre.
 const MAX_ASPECT: f64 = 1.8;
+
+/// White-noise gain of `GreyImage::binomial_3x3`: `Σw² = (6/16)²` over its 3 × 3 weights, a
+/// standard deviation × 0.375.
+const BINOMIAL_NOISE_GAIN: f32 = 0.375;
+/// Largest module, pixels, of a finder taken from the smoothed reading of the finest level:
+/// two pixels of the first binned level. A gap that wide always holds one whole binned pixel,
+/// whatever its phase, and that level reads it; a narrower one may straddle two, each mixed
+/// with the ring (clean, a binned level still opens gaps from ~1.5 of its pixels; under noise
+/// it does not).
+const SMOOTHED_MAX_MODULE: f64 = 4.0;
 
 /// Most 2×2 binnings of the finder pyramid (coarsest level: a quarter of the resolution).
 const MAX_BINNINGS: usize = 2;
@@ -212,7 +224,29 @@ fn scan_windows(
         for w in group {
             let view = w.view(image);
             let (ox, oy) = (w.col0 as f64, w.row0 as f64);
-            let found = labelling.scan(&view, floor, w.origin(), want_small.then_some(&mut small));
+            let mut found =
+                labelling.scan(&view, floor, w.origin(), want_small.then_some(&mut small));
+            if !want_small {
+                // The finest level: a finder of modules under ~4 px has no coarser level that
+                // reliably keeps its gap open, and white noise of a few percent breaks its
+                // one-module gap and ring into specks. Read through a 3 × 3 binomial as well,
+                // which keeps a 1.5-px gap open and lowers the noise 2.7×: the same scan, its
+                // floor scaled with the noise. Its blurred-finder rescue reads the gaps the
+                // smoothing closes (view 667 of the severity-1.5 real-view probe, seed 1).
+                // Only the small finders it finds are taken: larger ones are read at a binned
+                // level (itself an average) or in the raw reading, and the smoothed reading's
+                // would be clutter's look-alikes crowding the two-finder hypotheses
+                // (docs/design.md#hp-noisy-finders).
+                let smoothed = view.binomial_3x3();
+                let floor = floor.map(|f| f * BINOMIAL_NOISE_GAIN);
+                let small_only = |f: &Finder| f.module_px < SMOOTHED_MAX_MODULE;
+                found.extend(
+                    labelling
+                        .scan(&smoothed, floor, w.origin(), None)
+                        .into_iter()
+                        .filter(small_only),
+                );
+            }
             finders.extend(found.into_iter().map(|f| Finder {
                 center: f.center + Vector2::new(ox, oy),
                 ..f
