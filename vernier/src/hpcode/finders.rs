@@ -747,8 +747,10 @@ mod tests {
             let c = size as f64 / 2.0;
             let image = finder_image(size, size, c, c, m);
             let mut scanner = FinderScanner::default();
-            // The gap may also pass for a dark look-alike 1.5 times larger (kept for the grid to
-            // reject); the bright finder is found once, where it is.
+            // The gap may also pass for a dark look-alike, 1.5 times larger read as centre and
+            // gap, or 2/3 as large read as gap and ring (`(3m + 5m)/12`; the smoothed reading
+            // of a small finder gives that one), kept for the grid to reject; the bright
+            // finder is found once, where it is.
             let found = scanner.find(&image, None);
             let bright: Vec<&Finder> = found
                 .iter()
@@ -756,10 +758,10 @@ mod tests {
                 .collect();
             assert_eq!(bright.len(), 1, "module {m}: {found:?}");
             assert!(
-                found
-                    .iter()
-                    .all(|f| f.polarity == Polarity::BrightDots
-                        || (f.module_px / m - 1.5).abs() < 0.2)
+                found.iter().all(|f| f.polarity == Polarity::BrightDots
+                    || (f.module_px / m - 1.5).abs() < 0.2
+                    || (f.centre_hidden && (f.module_px / m - 2.0 / 3.0).abs() < 0.1)),
+                "module {m}: {found:?}"
             );
             let f = *bright[0];
             assert!(
