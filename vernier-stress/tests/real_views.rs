@@ -38,7 +38,7 @@ const DRAWS: usize = 8;
 /// * `code31.jpg` 667 at severity 1.5: magnified 0.60 to 4.5 px periods under white noise of
 ///   2.5 %: the finders' 2.2-px gaps and rings broke into specks at full resolution, and two of
 ///   the three markers kept one finder each (the finest level is now also read through a 3 × 3
-///   binomial, docs/design.md#hp-finders).
+///   binomial, docs/design.md#hp-noisy-finders).
 const FIXED: [(&str, u64, u64, f64); 6] = [
     ("stamp/stamp1.png", BASE_SEED, 879, 1.0),
     ("hpcode/HPCodeImage_20um.png", BASE_SEED, 68, 1.0),

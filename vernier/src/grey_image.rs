@@ -103,6 +103,10 @@ impl PixelFormat {
     }
 }
 
+/// White-noise gain of [`GreyImage::binomial_3x3`]: `√Σw² = 6/16` over its 3 × 3 weights,
+/// the factor on a white noise's standard deviation.
+pub(crate) const BINOMIAL_3X3_NOISE_GAIN: f32 = 0.375;
+
 const LUMA_R: f32 = 0.299;
 const LUMA_G: f32 = 0.587;
 const LUMA_B: f32 = 0.114;
@@ -430,7 +434,7 @@ impl GreyImage {
 
     /// The 3 × 3 binomial low-pass `[1 2 1]/4` along each axis, edges replicated: a Gaussian
     /// of σ ≈ 0.71 px that keeps one-pixel-wide structure and lowers white noise's standard
-    /// deviation to 0.375 of its own (the 3-tap sibling of Burt and Adelson's 5-tap kernel,
+    /// deviation by [`BINOMIAL_3X3_NOISE_GAIN`] (the 3-tap sibling of Burt and Adelson's 5-tap kernel,
     /// *The Laplacian pyramid as a compact image code*, IEEE Trans. Commun., 1983).
     pub(crate) fn binomial_3x3(&self) -> GreyImage {
         let (w, h) = (self.width, self.height);
@@ -854,7 +858,7 @@ mod tests {
                 sum_squares += v * v;
             }
         }
-        assert!((sum_squares.sqrt() - 0.375).abs() < 1e-6);
+        assert!((sum_squares.sqrt() - BINOMIAL_3X3_NOISE_GAIN).abs() < 1e-6);
         let flat = GreyImage::new(3, 4, vec![0.5; 12]).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(flat.binomial_3x3(), flat);
     }

@@ -23,7 +23,7 @@
 //! as well (`GreyImage::binomial_3x3`).
 
 use crate::binarize::{Region, Regions, ThresholdMap, BLOCK};
-use crate::grey_image::{GreyImage, Polarity};
+use crate::grey_image::{GreyImage, Polarity, BINOMIAL_3X3_NOISE_GAIN};
 use nalgebra::Vector2;
 use std::borrow::Cow;
 
@@ -66,9 +66,6 @@ const MIN_BOX_FILL: f64 = 0.4;
 /// Largest bounding-box aspect ratio of ring and centre.
 const MAX_ASPECT: f64 = 1.8;
 
-/// White-noise gain of `GreyImage::binomial_3x3`: `Σw² = (6/16)²` over its 3 × 3 weights, a
-/// standard deviation × 0.375.
-const BINOMIAL_NOISE_GAIN: f32 = 0.375;
 /// Largest module, pixels, of a finder taken from the smoothed reading of the finest level:
 /// two pixels of the first binned level. A gap that wide always holds one whole binned pixel,
 /// whatever its phase, and that level reads it; a narrower one may straddle two, each mixed
@@ -238,7 +235,7 @@ fn scan_windows(
                 // would be clutter's look-alikes crowding the two-finder hypotheses
                 // (docs/design.md#hp-noisy-finders).
                 let smoothed = view.binomial_3x3();
-                let floor = floor.map(|f| f * BINOMIAL_NOISE_GAIN);
+                let floor = floor.map(|f| f * BINOMIAL_3X3_NOISE_GAIN);
                 let small_only = |f: &Finder| f.module_px < SMOOTHED_MAX_MODULE;
                 found.extend(
                     labelling
