@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The whole test suite: formatting, lints, every workspace test (unit, synthetic round trips,
 # real images from $VERNIER_DATA_DIR, default ../shared/data, independent readers and DDS peer
-# from the ignored .venv/) and the ROS 2 node's interoperability test against Cyclone DDS.
+# from the ignored .venv/), the docs' commands, links and API docs (scripts/check_docs.sh) and
+# the ROS 2 node's interoperability test against Cyclone DDS.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -31,6 +32,8 @@ echo "== cargo clippy -D warnings"
 cargo clippy --workspace --all-targets --locked -- -D warnings
 echo "== cargo test"
 cargo test --workspace --locked
+echo "== docs: commands, links, rustdoc"
+bash scripts/check_docs.sh
 echo "== ROS 2 node against an independent DDS (Cyclone DDS)"
 VERNIER_ROS_PROFILE=test bash test/run_interop.sh
 # The optional rerun feature is never in the default build (a large SDK); it must still
