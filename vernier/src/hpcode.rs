@@ -388,7 +388,8 @@ impl HpCodeDetector {
                 .collect();
             triples.truncate(MAX_TRIPLES - measured);
             measured += triples.len();
-            markers.extend(self.measure_all(image, &triples)?);
+            let jobs: Vec<_> = triples.into_iter().map(|t| (t, None)).collect();
+            markers.extend(self.measure_all(image, &jobs)?);
         }
         // Markers with a finder missing (dust, damage): hypotheses from the finders left over,
         // each kept only when its grid and ID confirm it.
@@ -399,7 +400,7 @@ impl HpCodeDetector {
             }
             // Sequential: each accepted hypothesis hides the ones near it.
             let worker = &mut self.workers[0];
-            if let Some(m) = Measure::new(&self.params, worker).measure(image, &triple)? {
+            if let Some(m) = Measure::new(&self.params, worker).measure(image, &triple, None)? {
                 markers.push(m);
             }
         }
@@ -422,7 +423,7 @@ impl HpCodeDetector {
         if previous.is_empty() || previous.len() != predicted.len() {
             return Ok(None);
         }
-        let triples: Vec<FinderTriple> = previous
+        let jobs: Vec<(FinderTriple, Option<&HpCodeMarker>)> = previous
             .iter()
             .zip(predicted)
             .map(|(m, &to)| {
@@ -433,15 +434,16 @@ impl HpCodeDetector {
                     m.finders
                 };
                 let shift = to - t.center();
-                FinderTriple {
+                let moved = FinderTriple {
                     corner: t.corner + shift,
                     right: t.right + shift,
                     bottom: t.bottom + shift,
                     ..t
-                }
+                };
+                (moved, Some(m))
             })
             .collect();
-        let found = self.measure_all(image, &triples)?;
+        let found = self.measure_all(image, &jobs)?;
         let same = found.len() == previous.len()
             && found
                 .iter()
@@ -450,29 +452,32 @@ impl HpCodeDetector {
         Ok(same.then_some(found))
     }
 
-    /// The markers of `triples`, in their order. Each thread (with its own engine) takes the
-    /// next triple not yet taken, so that the costly ones (real markers, each with its field
+    /// The markers of `jobs` (a finder triple, and the marker it was found as in the last
+    /// frame when tracking), in their order. Each thread (with its own engine) takes the
+    /// next job not yet taken, so that the costly ones (real markers, each with its field
     /// fit) spread over the cores wherever they sit in the list; the results are put back in
-    /// the triples' order, the sequential result whatever the thread count.
+    /// the jobs' order, the sequential result whatever the thread count.
     fn measure_all(
         &mut self,
         image: &GreyImage,
-        triples: &[FinderTriple],
+        jobs: &[(FinderTriple, Option<&HpCodeMarker>)],
     ) -> Result<Vec<HpCodeMarker>> {
-        let threads = crate::parallel::thread_count(self.params.threads, triples.len());
+        let threads = crate::parallel::thread_count(self.params.threads, jobs.len());
         while self.workers.len() < threads {
             self.workers.push(MarkerWorker::default());
         }
         let params = &self.params;
         let results = crate::parallel::map_in_order(
             &mut self.workers[..threads],
-            triples,
-            |worker, triple| Measure::new(params, worker).measure(image, triple),
+            jobs,
+            |worker, (triple, previous)| {
+                Measure::new(params, worker).measure(image, triple, *previous)
+            },
         )
         .ok_or_else(|| {
             Error::PatternNotFound("internal: a marker-measuring thread panicked".into())
         })?;
-        let mut markers = Vec::with_capacity(triples.len());
+        let mut markers = Vec::with_capacity(jobs.len());
         for result in results {
             markers.extend(result?);
         }
@@ -551,11 +556,13 @@ impl Measure<'_> {
     }
 
     /// Fine measurement of one finder triple; `None` when the window's grid does not confirm
-    /// the marker or its ID cannot be read.
+    /// the marker or its ID cannot be read. `previous`: the marker as the last frame found
+    /// it (tracking), whose field fit this one starts from when the ID and handedness agree.
     fn measure(
         &mut self,
         image: &GreyImage,
         triple: &FinderTriple,
+        previous: Option<&HpCodeMarker>,
     ) -> Result<Option<HpCodeMarker>> {
         let coarse = triple.center();
         if !(coarse.x.is_finite() && coarse.y.is_finite()) {
@@ -666,7 +673,10 @@ impl Measure<'_> {
                 phase_std: analysis.phase_std,
                 at: (at.x, at.y),
             };
-            fine::refine_on_field(image, &grid, reading.id, rival)
+            let previous = previous
+                .filter(|m| m.id == reading.id && m.mirrored == reading.mirrored)
+                .and_then(|m| m.field.as_ref());
+            fine::refine_on_field(image, &grid, reading.id, rival, previous)
                 .filter(|(_, fit)| fit.beats(&rival))
         } else {
             None

@@ -547,3 +547,94 @@ fn uncertainty_counts_the_rounding_of_clean_8_bit_images() {
     }
     assert!(failures.is_empty(), "{failures:#?}");
 }
+
+/// Frames of the tracked render sequence.
+const TRACKED_FRAMES: usize = 200;
+
+/// Tracking (docs/design.md#tracked-field-fit): a sequence of noisy renders of the HP code
+/// moving and turning (up to 4 px and 0.01 rad from its start, 1 % noise, fresh noise each
+/// frame), detected frame by frame with `detect_next` (the whole-field fit warm-started from
+/// the last frame's) and cold with `detect`. The tracked poses must reach the efficiency
+/// target, be at least as precise as the cold ones (RMS error within the sampling spread of
+/// two estimators that share their noise), and stay within each frame's predicted σ of the
+/// cold fit of the same frame.
+#[test]
+fn tracked_hp_code_sequence_is_as_precise_as_cold_fits() {
+    let case = hpcode_case();
+    let px = case.truth.pixel_size;
+    let base = case.truth.camera_from_pattern().translation.vector / px;
+    let (unit_bound, _) = crlb(&case, case.window_corner());
+    let sigma = noise_sigma(0.01);
+    let bound = [
+        unit_bound[0].sqrt() / px * sigma,
+        unit_bound[1].sqrt() / px * sigma,
+        unit_bound[2].sqrt() * sigma,
+    ];
+    let config = case.settings.to_config().unwrap();
+    let (mut tracked, mut cold) = (
+        Detector::new(config.clone()).unwrap(),
+        Detector::new(config).unwrap(),
+    );
+    let mut rng = SmallRng::seed_from_u64(14);
+    let (mut errors, mut cold_errors) = ([vec![], vec![], vec![]], [vec![], vec![], vec![]]);
+    let mut worst: f64 = 0.0;
+    for k in 0..TRACKED_FRAMES {
+        let t = k as f64;
+        let origin = Vector2::new(
+            base.x + 4.0 * (t / 7.0).sin(),
+            base.y + 3.0 * (t / 5.0).cos(),
+        );
+        let truth =
+            Pose::from_origin_in_image(origin, case.truth.alpha + 0.01 * (t / 9.0).sin(), px);
+        let clean = render(case.layout.as_ref(), &truth, &case.options).unwrap();
+        let image = noisy(&clean, 0.01, &mut rng);
+        let a = tracked.detect_next(&image, 0).unwrap();
+        let b = cold.detect(&image).unwrap();
+        assert!(a.len() == 1 && b.len() == 1, "frame {k}: {a:?} {b:?}");
+        let (a, b) = (&a[0], &b[0]);
+        for (m, e) in [(a, &mut errors), (b, &mut cold_errors)] {
+            e[0].push((m.pose.x - truth.x) / px);
+            e[1].push((m.pose.y - truth.y) / px);
+            e[2].push(wrap_to_pi(m.pose.alpha - truth.alpha));
+        }
+        // Camera-frame differences against the tracked pose's own σ.
+        let cov = a.covariance(PERIOD, case.window_px);
+        let (ta, tb) = (
+            a.pose.camera_from_pattern().translation.vector,
+            b.pose.camera_from_pattern().translation.vector,
+        );
+        let off = [
+            (ta.x - tb.x) / cov[0][0].sqrt(),
+            (ta.y - tb.y) / cov[1][1].sqrt(),
+            wrap_to_pi(a.pose.alpha - b.pose.alpha) / cov[5][5].sqrt(),
+        ];
+        worst = off.iter().fold(worst, |w, v| w.max(v.abs()));
+    }
+    let counts = tracked.tracking_counts();
+    let (rms_tracked, rms_cold) = (
+        [0, 1, 2].map(|k| rms(&errors[k])),
+        [0, 1, 2].map(|k| rms(&cold_errors[k])),
+    );
+    let ratio = [0, 1, 2].map(|k| rms_tracked[k] / bound[k]);
+    let against_cold = [0, 1, 2].map(|k| rms_tracked[k] / rms_cold[k]);
+    eprintln!(
+        "tracked HP code, {TRACKED_FRAMES} frames ({} tracked): RMS/CRLB (x, y, alpha) \
+         {ratio:.2?}, tracked/cold RMS {against_cold:.3?}, largest |tracked − cold| {worst:.2} σ",
+        counts.tracked
+    );
+    assert!(counts.tracked as usize >= TRACKED_FRAMES - 1, "{counts:?}");
+    assert!(
+        ratio.iter().zip(TARGET).all(|(r, t)| *r <= t),
+        "RMS/CRLB {ratio:?}"
+    );
+    // Two estimators of the same pixels: their errors differ by far less than the noise, so
+    // the ratio of their RMS errors sits close to 1 (a few % here).
+    assert!(
+        against_cold.iter().all(|r| *r <= 1.05),
+        "tracked/cold RMS {against_cold:?}"
+    );
+    assert!(
+        worst <= 1.0,
+        "a tracked pose {worst:.2} σ from the cold fit of its frame"
+    );
+}

@@ -14,7 +14,8 @@ use super::marker_id::DotGrid;
 use crate::grey_image::GreyImage;
 use crate::layout::HpCodeLayout;
 use crate::phase::{
-    fit_dot_field_against, wrap_to_pi, FieldFit, NodeMask, PhasePlane, Rival, TiltStart,
+    fit_dot_field_against, fit_dot_field_tracked, wrap_to_pi, FieldFit, NodeMask, PhasePlane,
+    Rival, TiltStart,
 };
 use nalgebra::{Matrix2, Vector2};
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
@@ -198,12 +199,14 @@ struct FinderView {
 /// mirrored marker's grid reads its layout as from the front). The fit weighs every drawn
 /// dot and keeps clear of the finders, the missing ID dots and the marker's edge. `None` when
 /// the field is too small, the fit fails or it cannot beat `rival`, the window's fit (the
-/// caller keeps the window's grid).
+/// caller keeps the window's grid). With `previous`, the last frame's fit of this marker
+/// (tracking), the fit starts from its model ([`fit_dot_field_tracked`]).
 pub(crate) fn refine_on_field(
     image: &GreyImage,
     grid: &MarkerGrid,
     id: u64,
     rival: Rival,
+    previous: Option<&FieldFit>,
 ) -> Option<(MarkerGrid, FieldFit)> {
     let dots = &grid.dots;
     let n = dots.size;
@@ -234,16 +237,15 @@ pub(crate) fn refine_on_field(
         }
     };
     // The marker centre is node (h, h): the fit measures the tilt about it.
-    let fit = fit_dot_field_against(
-        image,
-        [plane(0), plane(1)],
-        &mask,
-        Some(rival),
-        Some(TiltStart {
-            centre: [h, h],
-            perspective: dots.perspective,
-        }),
-    )?;
+    let start = [plane(0), plane(1)];
+    let tilt = Some(TiltStart {
+        centre: [h, h],
+        perspective: dots.perspective,
+    });
+    let fit = match previous {
+        Some(previous) => fit_dot_field_tracked(image, start, &mask, Some(rival), tilt, previous),
+        None => fit_dot_field_against(image, start, &mask, Some(rival), tilt),
+    }?;
     let [px, py] = fit.planes;
     let gradients = Matrix2::new(px.a, px.b, py.a, py.b);
     let inverse = gradients.try_inverse()?;

@@ -557,6 +557,82 @@ pub struct FieldFit {
     /// The planes the fit started from (the window's, image frame): what stands when the fit
     /// does not beat the window ([`FieldFit::beats`]).
     start: [PhasePlane; 2],
+    /// The converged model, for the next frame's fit of the same marker
+    /// ([`fit_dot_field_tracked`]).
+    warm: Box<WarmModel>,
+}
+
+/// What a converged fit hands on to the next frame's fit of the same marker (tracking,
+/// docs/design.md#tracked-field-fit): everything but the planes changes little between two
+/// frames of a servo loop (the dots' harmonics, the illumination terms, the robust scale and
+/// the cells' weights, the tilt carried in the phase model).
+#[derive(Clone, Debug)]
+struct WarmModel {
+    /// The model, its planes and `frame` in the image frame (input pixels); no frozen
+    /// weights (they are per pixel of a box that moves).
+    model: Model,
+    /// Field centre `(x₀, y₀)` and half-size `s` of the normalised coordinates.
+    frame: (f64, f64, f64),
+    /// The perspective carried in the final pass's phase model (zero: a flat pass).
+    taken: Vector2<f64>,
+    /// Binning factor of the fit (1 or 2).
+    factor: usize,
+    /// The final sweep's robust residual σ and inlier fraction: the next frame's first sweep
+    /// on these weights must look alike to keep them ([`WarmModel::still_fits`]).
+    residual_std: f64,
+    inlier_fraction: f64,
+}
+
+/// How much a tracked frame's first sweep may depart from the last fit before its weights are
+/// judged afresh ([`WarmModel::still_fits`]): the residual's σ 25 % larger (dust arrived, the
+/// focus or the light changed), or 2 % of the field's weight newly rejected.
+const WARM_RESIDUAL_GROWTH: f64 = 1.25;
+const WARM_INLIER_DROP: f64 = 0.02;
+
+impl WarmModel {
+    /// Whether `step`, the first sweep of a tracked frame on this model's robust weights, shows
+    /// the same field: then its weights are frozen at once; otherwise they are set afresh
+    /// from its residuals, as a cold fit does.
+    fn still_fits(&self, step: &Step) -> bool {
+        step.residual_std <= WARM_RESIDUAL_GROWTH * self.residual_std
+            && step.inlier_fraction >= self.inlier_fraction - WARM_INLIER_DROP
+    }
+
+    /// This model in the frame of a (binned) sub-image whose pixel `(0, 0)` sits at
+    /// image-frame `offset`, `f` input pixels per pixel; `None` at another binning.
+    fn in_sub_frame(&self, f: usize, offset: [f64; 2]) -> Option<WarmModel> {
+        if f != self.factor {
+            return None;
+        }
+        let f = f as f64;
+        let mut warm = self.clone();
+        warm.model.planes = self.model.planes.map(|p| PhasePlane {
+            a: f * p.a,
+            b: f * p.b,
+            c: p.c + p.a * offset[0] + p.b * offset[1],
+        });
+        let (x0, y0, s) = self.frame;
+        warm.frame = ((x0 - offset[0]) / f, (y0 - offset[1]) / f, s / f);
+        Some(warm)
+    }
+
+    /// This model for a fit from planes `start` over a field whose normalised coordinates
+    /// have half-size `scale` (one frame for all): its centre moved with the lattice (the
+    /// point where `start` has the phases that the last planes had at the last centre) and
+    /// the linear terms' slopes rescaled to `scale`. `None` when `start` is singular.
+    fn moved_to(&self, start: &[PhasePlane; 2], scale: f64) -> Option<(Model, (f64, f64))> {
+        let (x0, y0, s0) = self.frame;
+        let phases = self.model.planes.map(|p| p.at(x0, y0));
+        let m = Matrix2::new(start[0].a, start[0].b, start[1].a, start[1].b);
+        let at = m.try_inverse()? * Vector2::new(phases[0] - start[0].c, phases[1] - start[1].c);
+        let mut model = self.model.clone();
+        model.planes = *start;
+        let ratio = scale / s0;
+        for k in [1, 2, 4, 5, 7, 8, 9, 10] {
+            model.linear[k] *= ratio;
+        }
+        (at.x.is_finite() && at.y.is_finite() && ratio.is_finite()).then_some((model, (at.x, at.y)))
+    }
 }
 
 impl FieldFit {
@@ -703,7 +779,7 @@ fn resolvable_harmonics(planes: &[PhasePlane; 2], side: f64, unaliased: bool) ->
 }
 
 /// The fit's state between sweeps.
-#[derive(Clone)]
+#[derive(Clone, Debug)]
 struct Model {
     planes: [PhasePlane; 2],
     /// μ, μ_X, μ_Y, B₁, E₁, F₁, B₂, E₂, F₂, η_X, η_Y.
@@ -1577,6 +1653,40 @@ pub fn fit_dot_field_against(
     rival: Option<Rival>,
     tilt: Option<TiltStart>,
 ) -> Option<FieldFit> {
+    fit_field(image, start, mask, rival, tilt, None)
+}
+
+/// [`fit_dot_field_against`] for the next frame of a sequence, from `previous`, the last
+/// frame's fit of the same marker and mask (docs/design.md#tracked-field-fit): the harmonics,
+/// illumination terms, robust scale, cells' weights and carried tilt start where they
+/// converged, so that the fit skips its start sweep and its first robust iterations and
+/// settles in three sweeps instead of six. Where the first sweep shows a field that no
+/// longer looks like the last one (the residual grown, weight newly rejected), the weights
+/// are judged afresh as a cold fit judges them; where the warm fit fails, the cold fit runs.
+/// The result is a fit of this frame alone: only the path to it is shorter.
+pub fn fit_dot_field_tracked(
+    image: &GreyImage,
+    start: [PhasePlane; 2],
+    mask: &NodeMask,
+    rival: Option<Rival>,
+    tilt: Option<TiltStart>,
+    previous: &FieldFit,
+) -> Option<FieldFit> {
+    fit_field(image, start, mask, rival, tilt, Some(&previous.warm)).or_else(|| {
+        log::debug!("whole-field fit: the warm start failed, fitted cold");
+        fit_field(image, start, mask, rival, tilt, None)
+    })
+}
+
+/// [`fit_dot_field_against`], warm-started from `warm` when given.
+fn fit_field(
+    image: &GreyImage,
+    start: [PhasePlane; 2],
+    mask: &NodeMask,
+    rival: Option<Rival>,
+    tilt: Option<TiltStart>,
+    warm: Option<&WarmModel>,
+) -> Option<FieldFit> {
     if mask.count() < MIN_NODES {
         return None;
     }
@@ -1659,7 +1769,11 @@ pub fn fit_dot_field_against(
         prior: tilt.map_or(Vector2::zeros(), |t| t.perspective),
         sampling,
     };
-    let mut fit = fit_dot_field_dispatch(&sub, start_sub, mask, goal)?;
+    let warm = match warm {
+        Some(w) => Some(w.in_sub_frame(factor, offset)?),
+        None => None,
+    };
+    let mut fit = fit_dot_field_dispatch(&sub, start_sub, mask, goal, warm.as_ref())?;
     fit.planes = fit.planes.map(|p| {
         let (a, b) = (p.a / f, p.b / f);
         PhasePlane {
@@ -1671,6 +1785,9 @@ pub fn fit_dot_field_against(
     fit.start = start;
     let (x0, y0, s) = fit.frame;
     fit.frame = (f * x0 + offset[0], f * y0 + offset[1], f * s);
+    fit.warm.model.planes = fit.planes;
+    fit.warm.frame = fit.frame;
+    fit.warm.factor = factor;
     Some(fit)
 }
 
@@ -1681,16 +1798,17 @@ fn fit_dot_field_dispatch(
     start: [PhasePlane; 2],
     mask: &NodeMask,
     goal: Goal,
+    warm: Option<&WarmModel>,
 ) -> Option<FieldFit> {
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
         {
             // SAFETY: the CPU supports the features the function is compiled for.
-            return unsafe { fit_dot_field_avx2(image, start, mask, goal) };
+            return unsafe { fit_dot_field_avx2(image, start, mask, goal, warm) };
         }
     }
-    fit_dot_field_generic(image, start, mask, goal)
+    fit_dot_field_generic(image, start, mask, goal, warm)
 }
 
 /// [`fit_dot_field`] compiled for AVX2 and FMA (the same arithmetic on wider vectors).
@@ -1701,8 +1819,9 @@ unsafe fn fit_dot_field_avx2(
     start: [PhasePlane; 2],
     mask: &NodeMask,
     goal: Goal,
+    warm: Option<&WarmModel>,
 ) -> Option<FieldFit> {
-    fit_dot_field_generic(image, start, mask, goal)
+    fit_dot_field_generic(image, start, mask, goal, warm)
 }
 
 #[inline(always)]
@@ -1711,8 +1830,12 @@ fn fit_dot_field_generic(
     start: [PhasePlane; 2],
     mask: &NodeMask,
     goal: Goal,
+    warm: Option<&WarmModel>,
 ) -> Option<FieldFit> {
-    let flat = fit_pass(image, start, mask, &goal, None);
+    if let Some(warm) = warm {
+        return fit_warm(image, start, mask, &goal, warm);
+    }
+    let flat = fit_pass(image, start, mask, &goal, None, None);
     // A significant tilt whose curvature the flat phase model leaves in the residual above
     // the noise has also shaped the robust weights and the layout's clearance (both judged on
     // the flat lattice, up to a few tenths of a period off at the field's edge on steep
@@ -1732,7 +1855,7 @@ fn fit_dot_field_generic(
                 perspective: goal.prior,
                 centre,
             };
-            let (fit, misfit) = fit_pass(image, start, mask, &goal, Some(warp))?;
+            let (fit, misfit) = fit_pass(image, start, mask, &goal, Some(warp), None)?;
             (fit, misfit, goal.prior)
         }
         None => return None,
@@ -1755,7 +1878,8 @@ fn fit_dot_field_generic(
             perspective: taken + left,
             centre,
         };
-        let Some((mut warped, m)) = fit_pass(image, fit.planes, mask, &goal, Some(warp)) else {
+        let Some((mut warped, m)) = fit_pass(image, fit.planes, mask, &goal, Some(warp), None)
+        else {
             break;
         };
         log::debug!(
@@ -1782,8 +1906,40 @@ fn fit_dot_field_generic(
 /// Most passes of a tilted field's fit ([`fit_dot_field_generic`]).
 const MAX_PASSES: usize = 8;
 
-/// One pass of the whole-field fit from `start`, with `warp` in its phase model if given:
-/// the fit, and the mean square residual its tilt explains over the white noise's variance.
+/// The tracked fit (docs/design.md#tracked-field-fit): one pass from `warm`, with the tilt
+/// that the last frame's fit carried in its phase model; `None` (the caller fits cold) when
+/// that pass fails, or leaves more tilt than the noise (the tilt changed: the cold passes
+/// measure it afresh).
+#[inline(always)]
+fn fit_warm(
+    image: &GreyImage,
+    start: [PhasePlane; 2],
+    mask: &NodeMask,
+    goal: &Goal,
+    warm: &WarmModel,
+) -> Option<FieldFit> {
+    let warp = match goal.tilt_centre {
+        Some(centre) if warm.taken != Vector2::zeros() => Some(Warp {
+            perspective: warm.taken,
+            centre,
+        }),
+        _ => None,
+    };
+    let (mut fit, misfit) = fit_pass(image, start, mask, goal, warp, Some(warm))?;
+    if goal.tilt_centre.is_some() && fit.perspective.is_some() && misfit > 1.0 {
+        log::debug!("whole-field fit: the tilt moved ({misfit:.1} of the noise left), fit cold");
+        return None;
+    }
+    if let Some(warp) = warp {
+        fit.perspective = Some(warp.perspective + fit.tilt_left());
+        fit.tilt_weight = 1.0;
+    }
+    Some(fit)
+}
+
+/// One pass of the whole-field fit from `start`, with `warp` in its phase model if given and
+/// from the last frame's model `warm` if given: the fit, and the mean square residual its
+/// tilt explains over the white noise's variance.
 #[inline(always)]
 fn fit_pass(
     image: &GreyImage,
@@ -1791,28 +1947,49 @@ fn fit_pass(
     mask: &NodeMask,
     goal: &Goal,
     warp: Option<Warp>,
+    warm: Option<&WarmModel>,
 ) -> Option<(FieldFit, f64)> {
     let mut field = FieldBox::new(image, &start, mask)?;
     field.warp = warp;
-    field.set_clearance(&start, mask);
-    let mut model = first_model(image, &mut field, mask, start, goal.sampling.unaliased)?;
+    let mut model = match warm {
+        // The start sweep measures the harmonics and centres the field: the warm model has
+        // both (the centre moved with the lattice).
+        Some(warm) => {
+            let (model, (x0, y0)) = warm.moved_to(&start, field.frame.2)?;
+            field.frame = (x0, y0, field.frame.2);
+            model
+        }
+        None => {
+            field.set_clearance(&start, mask);
+            first_model(image, &mut field, mask, start, goal.sampling.unaliased)?
+        }
+    };
     let wider = mask.with_clearance_for_blur(&model);
-    if let Some(wider) = &wider {
-        field.set_clearance(&start, wider);
+    if warm.is_some() || wider.is_some() {
+        field.set_clearance(&start, wider.as_ref().unwrap_or(mask));
     }
     let mask = wider.as_ref().unwrap_or(mask);
-    let mut run = Run::default();
+    let mut run = Run {
+        warm,
+        ..Run::default()
+    };
     // Free harmonic phases first: the offsets follow the fundamentals alone, whatever the
     // dots' shape. Then, where the harmonics' phases show point-symmetric dots, the harmonics
     // are tied to the dot centres and inform the offsets too (module doc). A free stage still
     // settling at the iteration limit (aliased harmonics on a 4-px grid, which their imaginary
-    // parts couple more than real ones) is judged as it stands: tied, it may settle.
+    // parts couple more than real ones) is judged as it stands: tied, it may settle. A warm
+    // model tied already goes on tied (the dots' shape does not change between frames).
     let (mut step, free_settled) = match converge(image, &field, mask, &mut model, goal, &mut run) {
         Ok(step) => (step, true),
-        Err(Stall::AtLimit(step)) => (*step, false),
-        Err(Stall::Failed) => return None,
+        Err(Stall::AtLimit(step)) if !model.tied => (*step, false),
+        Err(_) => return None,
     };
-    match symmetric_shift(&model, &step) {
+    let shift = if model.tied {
+        None
+    } else {
+        symmetric_shift(&model, &step)
+    };
+    match shift {
         Some(shift) => {
             let mut tied = model.clone();
             tied.tie(shift);
@@ -1857,6 +2034,17 @@ fn fit_pass(
         covariance: step.covariance,
         model_error_ratio: step.model_error_ratio,
         frame: field.frame,
+        warm: Box::new(WarmModel {
+            model: Model {
+                frozen: Vec::new(),
+                ..model
+            },
+            frame: field.frame,
+            taken: field.warp.map_or(Vector2::zeros(), |w| w.perspective),
+            factor: 1,
+            residual_std: step.residual_std,
+            inlier_fraction: step.inlier_fraction,
+        }),
     };
     Some((fit, step.tilt_misfit))
 }
@@ -1952,7 +2140,10 @@ const HOPELESS: f64 = 10.0;
 
 /// Iteration state of one fit, across its free and tied stages.
 #[derive(Default)]
-struct Run {
+struct Run<'a> {
+    /// The last frame's model, when tracking: its robust weights are frozen on the first
+    /// sweep if that sweep shows the same field ([`WarmModel::still_fits`]).
+    warm: Option<&'a WarmModel>,
     /// Sweeps run (the start's not counted).
     iterations: usize,
     /// How far each plane moved in all, `Σ(|α| + |β| + |γ|)`, radians.
@@ -1969,7 +2160,7 @@ enum Stall {
     Failed,
 }
 
-impl Run {
+impl Run<'_> {
     /// Adds a move of each plane (radians); `None` (the fit refused) once a plane has moved by
     /// [`MAX_CORRECTION`] in all, or a move was not a number.
     fn add_shift(&mut self, moved: [f64; 2]) -> Option<()> {
@@ -2008,10 +2199,13 @@ fn converge(
     for stage_iteration in 1..=MAX_ITERATIONS {
         run.iterations += 1;
         let iteration = run.iterations;
+        // A warm start's weights are the last frame's: its first sweep freezes them, if it
+        // shows the same field (checked below).
+        let warm_first = run.warm.is_some() && iteration == 1;
         let freeze = run.frozen_at.is_none()
-            && iteration > ROBUST_ITERATIONS
-            && steps.previous <= SETTLED_STEP;
+            && (warm_first || (iteration > ROBUST_ITERATIONS && steps.previous <= SETTLED_STEP));
         let mut step = iterate(image, field, mask, model, freeze, goal).ok_or(Stall::Failed)?;
+        let freeze = freeze && !(warm_first && run.warm.is_some_and(|w| !w.still_fits(&step)));
         let mut largest = 0.0f64;
         let mut moved = [0.0; 2];
         for (l, p) in model.planes.iter_mut().enumerate() {

@@ -25,7 +25,10 @@ mod refine;
 mod spectrum;
 
 pub use bandpass::PhaseMap;
-pub use field_fit::{fit_dot_field, fit_dot_field_against, FieldFit, NodeMask, Rival, TiltStart};
+pub use field_fit::{
+    fit_dot_field, fit_dot_field_against, fit_dot_field_tracked, FieldFit, NodeMask, Rival,
+    TiltStart,
+};
 pub use inspect::{PhaseInspection, SpectrumView};
 pub use lobes::Lobe;
 pub use plane::{fit_plane, wrap_angle, wrap_to_pi, PhasePlane};
