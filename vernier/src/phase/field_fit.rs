@@ -870,17 +870,17 @@ struct HarmonicBank {
     /// Highest order of the harmonics along either axis ([`top_order`]).
     top: usize,
     orders: [(i32, i32); BANK],
-    re: [f32; BANK],
-    im: [f32; BANK],
+    re: Lanes,
+    im: Lanes,
     step_re: [f32; BANK],
     step_im: [f32; BANK],
-    amp_re: [f32; BANK],
-    amp_im: [f32; BANK],
+    amp_re: Lanes,
+    amp_im: Lanes,
     /// `h_l·A_h` (re, im) for the slopes along `φ₁` and `φ₂`.
-    slope1_re: [f32; BANK],
-    slope1_im: [f32; BANK],
-    slope2_re: [f32; BANK],
-    slope2_im: [f32; BANK],
+    slope1_re: Lanes,
+    slope1_im: Lanes,
+    slope2_re: Lanes,
+    slope2_im: Lanes,
     /// A warped field's per-harmonic turn of the step per column, `e^{ih·Δ²φ}`
     /// ([`FieldPixels::chirp`]); `None` on a flat field, whose steps are constant.
     chirp: Option<[[f32; BANK]; 2]>,
@@ -942,32 +942,38 @@ fn tree_sum(v: [f32; LANES]) -> f64 {
     (two[0] + two[1]) as f64
 }
 
-/// The first `m` values of `v` in whole lanes.
+/// A bank's values in whole lanes: indexing a chunk checks its bounds once for all its
+/// lanes, and the lane loops compile to vector arithmetic with no iterator to build (zipped
+/// chunk iterators were built out of line, per pixel, in the AVX2 sweep).
+type Lanes = [[f32; LANES]; BANK / LANES];
+
+/// The `k`-th value of `v`.
 #[inline(always)]
-fn lanes<T>(v: &[T; BANK], m: usize) -> std::slice::ChunksExact<'_, T> {
-    v[..m].chunks_exact(LANES)
+fn lane_mut(v: &mut Lanes, k: usize) -> &mut f32 {
+    &mut v[k / LANES][k % LANES]
 }
 
 impl HarmonicBank {
     /// The bank of `harmonics` (orders and amplitudes) for `planes`.
     fn new(harmonics: &[((i32, i32), Complex64)], planes: &[PhasePlane; 2]) -> Self {
         let zero = [0.0; BANK];
+        let lanes = [[0.0; LANES]; BANK / LANES];
         let n = harmonics.len().min(MAX_HARMONICS);
         let mut bank = HarmonicBank {
             n,
             padded: n.div_ceil(LANES) * LANES,
             top: 1,
             orders: [(0, 0); BANK],
-            re: zero,
-            im: zero,
+            re: lanes,
+            im: lanes,
             step_re: zero,
             step_im: zero,
-            amp_re: zero,
-            amp_im: zero,
-            slope1_re: zero,
-            slope1_im: zero,
-            slope2_re: zero,
-            slope2_im: zero,
+            amp_re: lanes,
+            amp_im: lanes,
+            slope1_re: lanes,
+            slope1_im: lanes,
+            slope2_re: lanes,
+            slope2_im: lanes,
             chirp: None,
             demodulated: RowSums::default(),
             overlap: None,
@@ -979,12 +985,12 @@ impl HarmonicBank {
             bank.orders[k] = (h1, h2);
             bank.step_re[k] = step.re as f32;
             bank.step_im[k] = step.im as f32;
-            bank.amp_re[k] = a.re as f32;
-            bank.amp_im[k] = a.im as f32;
-            bank.slope1_re[k] = (h1f * a.re) as f32;
-            bank.slope1_im[k] = (h1f * a.im) as f32;
-            bank.slope2_re[k] = (h2f * a.re) as f32;
-            bank.slope2_im[k] = (h2f * a.im) as f32;
+            *lane_mut(&mut bank.amp_re, k) = a.re as f32;
+            *lane_mut(&mut bank.amp_im, k) = a.im as f32;
+            *lane_mut(&mut bank.slope1_re, k) = (h1f * a.re) as f32;
+            *lane_mut(&mut bank.slope1_im, k) = (h1f * a.im) as f32;
+            *lane_mut(&mut bank.slope2_re, k) = (h2f * a.re) as f32;
+            *lane_mut(&mut bank.slope2_im, k) = (h2f * a.im) as f32;
         }
         bank.top = top_order(&bank.orders[..n]);
         bank
@@ -999,8 +1005,8 @@ impl HarmonicBank {
             &self.orders[..self.n],
             self.top,
             z,
-            &mut self.re,
-            &mut self.im,
+            self.re.as_flattened_mut(),
+            self.im.as_flattened_mut(),
         );
     }
 
@@ -1010,7 +1016,8 @@ impl HarmonicBank {
     fn seed_warped(&mut self, p: &Pixel) {
         let orders = &self.orders[..self.n];
         let top = self.top;
-        exponentials(orders, top, &p.z, &mut self.re, &mut self.im);
+        let (re, im) = (self.re.as_flattened_mut(), self.im.as_flattened_mut());
+        exponentials(orders, top, &p.z, re, im);
         exponentials(orders, top, &p.step, &mut self.step_re, &mut self.step_im);
         let [cr, ci] = self.chirp.get_or_insert([[0.0; BANK]; 2]);
         exponentials(orders, top, &p.chirp, cr, ci);
@@ -1047,7 +1054,8 @@ impl HarmonicBank {
     fn advance(&mut self, columns: usize) {
         let m = self.padded;
         for _ in 0..columns {
-            let (re, im) = (&mut self.re[..m], &mut self.im[..m]);
+            let re = &mut self.re.as_flattened_mut()[..m];
+            let im = &mut self.im.as_flattened_mut()[..m];
             let (sr, si) = (&self.step_re[..m], &self.step_im[..m]);
             for k in 0..m {
                 let (r, i) = (re[k], im[k]);
@@ -1066,7 +1074,8 @@ impl HarmonicBank {
             return;
         };
         for _ in 0..columns {
-            let (re, im) = (&mut self.re[..m], &mut self.im[..m]);
+            let re = &mut self.re.as_flattened_mut()[..m];
+            let im = &mut self.im.as_flattened_mut()[..m];
             let (sr, si) = (&mut self.step_re[..m], &mut self.step_im[..m]);
             let (cr, ci) = (&cr[..m], &ci[..m]);
             for k in 0..m {
@@ -1086,13 +1095,11 @@ impl HarmonicBank {
     fn evaluate(&self) -> (f64, [f64; 2]) {
         // One partial sum per lane (lane-wise arithmetic: whole vector registers).
         let (mut value, mut s1, mut s2) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
-        let m = self.padded;
-        let chunks = lanes(&self.re, m)
-            .zip(lanes(&self.im, m))
-            .zip(lanes(&self.amp_re, m).zip(lanes(&self.amp_im, m)))
-            .zip(lanes(&self.slope1_re, m).zip(lanes(&self.slope1_im, m)))
-            .zip(lanes(&self.slope2_re, m).zip(lanes(&self.slope2_im, m)));
-        for ((((er, ei), (ar, ai)), (b1r, b1i)), (b2r, b2i)) in chunks {
+        for c in 0..self.padded / LANES {
+            let (er, ei) = (&self.re[c], &self.im[c]);
+            let (ar, ai) = (&self.amp_re[c], &self.amp_im[c]);
+            let (b1r, b1i) = (&self.slope1_re[c], &self.slope1_im[c]);
+            let (b2r, b2i) = (&self.slope2_re[c], &self.slope2_im[c]);
             for lane in 0..LANES {
                 value[lane] += ar[lane] * er[lane] - ai[lane] * ei[lane];
                 s1[lane] -= b1r[lane] * ei[lane] + b1i[lane] * er[lane];
@@ -1109,7 +1116,7 @@ impl HarmonicBank {
         let psi = psi as f32;
         let [sr, si] = &mut self.demodulated.row;
         let (sr, si) = (&mut sr[..m], &mut si[..m]);
-        let (re, im) = (&self.re[..m], &self.im[..m]);
+        let (re, im) = (&self.re.as_flattened()[..m], &self.im.as_flattened()[..m]);
         for k in 0..m {
             sr[k] += psi * re[k];
             si[k] -= psi * im[k];
@@ -1123,7 +1130,7 @@ impl HarmonicBank {
         let w = w as f32;
         let [or, oi] = &mut self.overlap.get_or_insert_with(RowSums::default).row;
         let (or, oi) = (&mut or[..m], &mut oi[..m]);
-        let (re, im) = (&self.re[..m], &self.im[..m]);
+        let (re, im) = (&self.re.as_flattened()[..m], &self.im.as_flattened()[..m]);
         for k in 0..m {
             or[k] += w * (re[k] * re[k] - im[k] * im[k]);
             oi[k] += w * (2.0 * re[k] * im[k]);
@@ -1993,10 +2000,12 @@ fn fit_pass(
         Some(shift) => {
             let mut tied = model.clone();
             tied.tie(shift);
-            let settled = run
-                .add_shift(shift.map(f64::abs))
-                .ok_or(Stall::Failed)
-                .and_then(|()| converge(image, &field, mask, &mut tied, goal, &mut run));
+            // Not a closure: it would be compiled apart from the AVX2 caller, without its
+            // target features.
+            let settled = match run.add_shift(shift.map(f64::abs)) {
+                Some(()) => converge(image, &field, mask, &mut tied, goal, &mut run),
+                None => Err(Stall::Failed),
+            };
             match settled {
                 Ok(tied_step) => (model, step) = (tied, tied_step),
                 // A tied fit that does not settle leaves the free one standing, if it settled.

@@ -87,9 +87,12 @@ impl<const N: usize> NormalEquations<N> {
 #[inline(always)]
 fn dot(a: &[f64; BLOCK], b: &[f64; BLOCK]) -> f64 {
     let mut partial = [0.0f64; LANES];
-    for (a, b) in a.chunks_exact(LANES).zip(b.chunks_exact(LANES)) {
+    // Constant indices: no iterator to build, no bounds to check (zipped chunk iterators were
+    // built out of line, once per product, in the AVX2 sweep).
+    for chunk in 0..BLOCK / LANES {
         for lane in 0..LANES {
-            partial[lane] += a[lane] * b[lane];
+            let k = chunk * LANES + lane;
+            partial[lane] += a[k] * b[k];
         }
     }
     partial.iter().sum()
