@@ -380,16 +380,106 @@ pub struct Detector {
     pixel_size: Option<f64>,
 }
 
-/// What tracking keeps between frames (HP codes: the last two frames' markers).
+/// What tracking keeps between frames: the last two frames' markers (HP codes or stamps).
 #[derive(Default)]
 struct TrackState {
-    last: Vec<HpCodeMarker>,
-    before: Vec<HpCodeMarker>,
+    hp_codes: History<HpCodeMarker>,
+    stamps: History<StampDetection>,
     /// Frames tracked since the last full detection.
     since_full: usize,
     /// Frames of the stream found by tracking / by full detection (for diagnostics).
     tracked_frames: u64,
     full_frames: u64,
+}
+
+/// The last two frames' markers of one type.
+struct History<T> {
+    last: Vec<T>,
+    before: Vec<T>,
+}
+
+impl<T> Default for History<T> {
+    fn default() -> Self {
+        History {
+            last: Vec::new(),
+            before: Vec::new(),
+        }
+    }
+}
+
+/// A marker that tracking follows: where it is, and what must not change.
+trait Tracked {
+    /// Image position `(col, row)` of the marker's origin, pixels.
+    fn at(&self) -> Vector2<f64>;
+    /// Its ID.
+    fn identity(&self) -> u64;
+}
+
+impl Tracked for HpCodeMarker {
+    fn at(&self) -> Vector2<f64> {
+        self.origin_px
+    }
+    fn identity(&self) -> u64 {
+        self.id
+    }
+}
+
+impl Tracked for StampDetection {
+    fn at(&self) -> Vector2<f64> {
+        self.origin_px
+    }
+    fn identity(&self) -> u64 {
+        self.id as u64
+    }
+}
+
+impl<T: Tracked> History<T> {
+    /// Each last marker's predicted position in the next frame: constant velocity from the
+    /// last two frames when it was in both, else where it was.
+    fn predicted(&self) -> Vec<Vector2<f64>> {
+        self.last
+            .iter()
+            .enumerate()
+            .map(|(i, m)| match self.before.get(i) {
+                Some(b) if b.identity() == m.identity() => 2.0 * m.at() - b.at(),
+                _ => m.at(),
+            })
+            .collect()
+    }
+}
+
+impl TrackState {
+    /// The next frame's markers of one type in `history`: tracked by `track` (from the last
+    /// ones and their predicted positions) unless a full search is `due` or tracking loses
+    /// one, else found by `detect`; both run on `detector`.
+    fn next<'h, T: Tracked, D>(
+        history: &'h mut History<T>,
+        counts: (&mut usize, &mut u64, &mut u64),
+        due: bool,
+        detector: &mut D,
+        track: impl FnOnce(&mut D, &[T], &[Vector2<f64>]) -> Result<Option<Vec<T>>>,
+        detect: impl FnOnce(&mut D) -> Result<Vec<T>>,
+    ) -> Result<&'h [T]> {
+        let (since_full, tracked_frames, full_frames) = counts;
+        let mut tracked = None;
+        if !history.last.is_empty() && !due {
+            tracked = track(detector, &history.last, &history.predicted())?;
+        }
+        let found = match tracked {
+            Some(found) => {
+                *since_full += 1;
+                *tracked_frames += 1;
+                found
+            }
+            None => {
+                *since_full = 0;
+                *full_frames += 1;
+                detect(detector)?
+            }
+        };
+        history.before = std::mem::replace(&mut history.last, found);
+        Ok(&history.last)
+    }
 }
 
 /// How a stream's frames were processed by [`Detector::detect_next`].
@@ -449,51 +539,51 @@ impl Detector {
     }
 
     /// Detects the markers of the next frame of a stream (servo loops, recordings), tracking
-    /// them from frame to frame (docs/design.md#tracking): for HP codes the finder search
-    /// runs only on the first frame, when a marker is lost or its ID changes, and every
-    /// `reacquire_every` frames (new markers appear then; 0 = only on loss); in between each
-    /// marker is measured again from its predicted position (constant velocity). The poses are
-    /// those of [`Detector::detect`] while markers move less than half a period per frame
-    /// beyond the prediction. Other marker types run [`Detector::detect`] on every frame
-    /// (periodic and Megarena have no search to skip).
+    /// them from frame to frame (docs/design.md#tracking): for HP codes and framed stamps the
+    /// search (finders, frames) runs only on the first frame, when a marker is lost or its ID
+    /// changes, and every `reacquire_every` frames (new markers appear then; 0 = only on
+    /// loss); in between each marker is measured again from its predicted position (constant
+    /// velocity), its whole-field fit started from the last frame's
+    /// (docs/design.md#tracked-field-fit). The poses are those of [`Detector::detect`] to
+    /// within a small fraction of their σ on renders while markers move less than half a
+    /// period per frame beyond the prediction. Other marker types run [`Detector::detect`] on
+    /// every frame (periodic and Megarena have no search to skip).
     pub fn detect_next(
         &mut self,
         image: &GreyImage,
         reacquire_every: usize,
     ) -> Result<Vec<MarkerPose>> {
-        let Inner::HpCode(d) = &mut self.inner else {
-            self.track.full_frames += 1;
-            return self.detect(image);
-        };
         let t = &mut self.track;
         let due = reacquire_every > 0 && t.since_full + 1 >= reacquire_every;
-        let mut tracked = None;
-        if !t.last.is_empty() && !due {
-            let predicted: Vec<Vector2<f64>> = t
-                .last
-                .iter()
-                .enumerate()
-                .map(|(i, m)| match t.before.get(i) {
-                    Some(b) if b.id == m.id => 2.0 * m.origin_px - b.origin_px,
-                    _ => m.origin_px,
-                })
-                .collect();
-            tracked = d.track(image, &t.last, &predicted)?;
-        }
-        let found = match tracked {
-            Some(found) => {
-                t.since_full += 1;
-                t.tracked_frames += 1;
-                found
+        let counts = (&mut t.since_full, &mut t.tracked_frames, &mut t.full_frames);
+        let markers = match &mut self.inner {
+            Inner::HpCode(d) => {
+                let found = TrackState::next(
+                    &mut t.hp_codes,
+                    counts,
+                    due,
+                    d.as_mut(),
+                    |d, last, predicted| d.track(image, last, predicted),
+                    |d| d.detect(image),
+                )?;
+                found.iter().map(MarkerPose::from).collect()
             }
-            None => {
-                t.since_full = 0;
-                t.full_frames += 1;
-                d.detect(image)?
+            Inner::Stamp(d) => {
+                let found = TrackState::next(
+                    &mut t.stamps,
+                    counts,
+                    due,
+                    d.as_mut(),
+                    |d, last, predicted| d.track(image, last, predicted),
+                    |d| d.detect(image),
+                )?;
+                found.iter().map(MarkerPose::from).collect()
+            }
+            _ => {
+                self.track.full_frames += 1;
+                return self.detect(image);
             }
         };
-        t.before = std::mem::replace(&mut t.last, found);
-        let markers = t.last.iter().map(MarkerPose::from).collect();
         Ok(self.finish(markers))
     }
 

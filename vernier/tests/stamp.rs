@@ -7,7 +7,7 @@ mod common;
 
 use nalgebra::Vector2;
 use rand::{rngs::SmallRng, Rng, SeedableRng};
-use std::f64::consts::{FRAC_PI_2, PI};
+use std::f64::consts::{FRAC_PI_2, PI, TAU};
 use vernier::detector::{DetectorSettings, MarkerKind};
 use vernier::layout::{BitmapLayout, Layout};
 use vernier::phase::wrap_angle;
@@ -974,4 +974,127 @@ fn no_stamp_and_bad_settings() {
         ..Default::default()
     };
     assert!(missing.to_config().is_err());
+}
+
+/// Largest difference between two marker lists matched by ID and place, in units of the
+/// first list's predicted σ (camera-frame x, y and yaw of `MarkerPose::covariance`).
+fn worst_in_sigmas(a: &[vernier::MarkerPose], b: &[vernier::MarkerPose], period: f64) -> f64 {
+    assert_eq!(a.len(), b.len(), "{a:#?}\n{b:#?}");
+    let mut worst = 0.0f64;
+    for m in a {
+        let n = b
+            .iter()
+            .filter(|n| n.id == m.id)
+            .min_by(|p, q| {
+                let d = |x: &&vernier::MarkerPose| (x.origin_px - m.origin_px).norm();
+                d(p).total_cmp(&d(q))
+            })
+            .expect("same IDs");
+        let cov = m.covariance(period, m.window_px as f64);
+        let (tm, tn) = (
+            m.pose.camera_from_pattern().translation.vector,
+            n.pose.camera_from_pattern().translation.vector,
+        );
+        let yaw = wrap_angle(m.pose.alpha - n.pose.alpha);
+        for (d, v) in [
+            (tm.x - tn.x, cov[0][0]),
+            (tm.y - tn.y, cov[1][1]),
+            (yaw, cov[5][5]),
+        ] {
+            worst = worst.max(d.abs() / v.sqrt());
+        }
+    }
+    worst
+}
+
+#[test]
+fn tracking_stamps_gives_the_full_detection_on_a_moving_sequence() {
+    // Two stamps drifting and turning (0.7 px and 1.5e-3 rad per frame, one accelerating),
+    // 1 % noise, 16 frames, full search every 8: frames in between skip the frame search and
+    // start each whole-field fit from the last frame's (docs/design.md#tracked-field-fit),
+    // and give the full detection's poses to a small fraction of their σ.
+    let period = 6.0;
+    let dir = common::data_dir().join("layouts");
+    let bitmaps = load_bitmaps(&["stampD", "stampG"], period);
+    let settings = DetectorSettings {
+        pattern_type: MarkerKind::Stamp,
+        period: Some(period),
+        bitmaps: vec![dir.join("stampD.png"), dir.join("stampG.png")],
+        ..Default::default()
+    };
+    let config = settings.to_config().unwrap();
+    let (mut tracker, mut full) = (
+        Detector::new(config.clone()).unwrap(),
+        Detector::new(config).unwrap(),
+    );
+    let mut opts = RenderOptions::new(760, 400);
+    opts.blur_sigma = 0.6;
+    opts.noise_std = 0.01;
+    let mut worst = 0.0f64;
+    for frame in 0..16 {
+        let t = frame as f64;
+        let poses = [
+            Pose::from_origin_in_image(Vector2::new(-190.0 + 0.7 * t, 4.0), 0.3 + 1.5e-3 * t, 1.0),
+            Pose::from_origin_in_image(
+                Vector2::new(185.0, -6.0 + 0.03 * t * t),
+                -1.2 - 1.5e-3 * t,
+                1.0,
+            ),
+        ];
+        let items: Vec<(&dyn Layout, Pose)> = bitmaps
+            .iter()
+            .zip(&poses)
+            .map(|(l, p)| (l as &dyn Layout, *p))
+            .collect();
+        opts.seed = frame;
+        let image = render_scene(&items, &opts).unwrap();
+        let tracked = tracker.detect_next(&image, 8).unwrap();
+        let expected = full.detect(&image).unwrap();
+        assert_eq!(expected.len(), 2, "frame {frame}");
+        worst = worst.max(worst_in_sigmas(&tracked, &expected, period));
+    }
+    let counts = tracker.tracking_counts();
+    println!(
+        "stamps: tracked {} frames, full {}: worst {worst:.2} σ",
+        counts.tracked, counts.full
+    );
+    assert_eq!((counts.tracked, counts.full), (14, 2));
+    assert!(worst < 0.25, "{worst} σ");
+}
+
+#[test]
+fn tracking_real_stamps_gives_their_full_detection() {
+    // The same real frame over and over (the original's stamp image, two stamps of one
+    // bitmap): every frame after the first is tracked, and each pose stays within its σ of
+    // the full detection's, σ scaled by the fit's model error (`FieldFit::model_error_ratio`:
+    // on real dots the robust weights depend on the residuals they were judged on, and the
+    // tracked fit judges them on a converged model, the cold fit on one two sweeps from its
+    // start).
+    let period = 15.0;
+    let params = StampParams::new(period, load_bitmaps(&["stamp69x69"], period));
+    let image = open("stamp/stampPatternImage_15um.jpg");
+    let mut detector = StampDetector::new(params).unwrap();
+    let expected = detector.detect(&image).unwrap();
+    assert_eq!(expected.len(), 2);
+    let mut last = expected.clone();
+    let mut worst = 0.0f64;
+    for _ in 0..3 {
+        let predicted: Vec<Vector2<f64>> = last.iter().map(|d| d.origin_px).collect();
+        let tracked = detector
+            .track(&image, &last, &predicted)
+            .unwrap()
+            .expect("both stamps found again");
+        for (t, e) in tracked.iter().zip(&expected) {
+            let fit = t.field.as_ref().expect("a whole-field fit");
+            let scale = fit.model_error_ratio();
+            let moved = (t.origin_px - e.origin_px).norm() * TAU / (period / t.pose.pixel_size);
+            let turned = wrap_angle(t.pose.alpha - e.pose.alpha);
+            let sigma = t.phase_std[0].hypot(t.phase_std[1]) * scale;
+            let yaw_sigma = t.yaw_std.expect("the fit's yaw σ") * scale;
+            worst = worst.max(moved / sigma).max(turned.abs() / yaw_sigma);
+        }
+        last = tracked;
+    }
+    println!("real stamps: worst {worst:.2} σ (model error included)");
+    assert!(worst < 1.0, "{worst} σ");
 }

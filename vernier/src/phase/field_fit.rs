@@ -79,7 +79,7 @@
 //! CPU has it. A fit whose steps stop contracting once the weights are frozen is given up at
 //! once rather than run to the iteration limit (it would be refused there).
 
-use super::noise::{quantisation_variance_in, tilted_white_noise_variance, LatticeTilt, NoisePlan};
+use super::noise::{quantisation_variance_in, tilted_white_noise_variance, with_plan, LatticeTilt};
 use super::normal_equations::NormalEquations;
 use super::plane::{wrap_to_pi, PhasePlane};
 use super::MIN_NOISE_STD;
@@ -399,6 +399,23 @@ impl NodeMask {
     pub fn count(&self) -> usize {
         self.present.iter().filter(|&&r| r).count()
     }
+
+    /// Image-frame point of the drawn nodes' mean `k̄` under `planes` (`φ_l = 2π·k̄_l`);
+    /// `None` without drawn nodes or for singular planes.
+    fn centroid_at(&self, planes: &[PhasePlane; 2]) -> Option<Vector2<f64>> {
+        let (mut sum, mut n) = (Vector2::zeros(), 0.0);
+        for (index, _) in self.present.iter().enumerate().filter(|(_, &p)| p) {
+            let (i, j) = (index / self.dims.1.max(1), index % self.dims.1.max(1));
+            sum += Vector2::new(
+                (self.first.0 + i as i64) as f64,
+                (self.first.1 + j as i64) as f64,
+            );
+            n += 1.0;
+        }
+        let k = (n > 0.0).then_some(sum / n)?;
+        let m = Matrix2::new(planes[0].a, planes[0].b, planes[1].a, planes[1].b);
+        Some(m.try_inverse()? * Vector2::new(TAU * k.x - planes[0].c, TAU * k.y - planes[1].c))
+    }
 }
 
 /// Row-major index of `(a, b)` in a grid whose entry `(0, 0)` is `first` and whose extent is
@@ -568,13 +585,18 @@ pub struct FieldFit {
 /// the cells' weights, the tilt carried in the phase model).
 #[derive(Clone, Debug)]
 struct WarmModel {
-    /// The model, its planes and `frame` in the image frame (input pixels); no frozen
-    /// weights (they are per pixel of a box that moves).
+    /// The model, its planes in the image frame (input pixels); no frozen weights (they are
+    /// per pixel of a box that moves).
     model: Model,
-    /// Field centre `(x₀, y₀)` and half-size `s` of the normalised coordinates.
+    /// The field centre `(x₀, y₀)` from the drawn nodes' centroid
+    /// ([`NodeMask::centroid_at`]; the same nodes in any numbering of them), and the
+    /// half-size `s` of the normalised coordinates, input pixels.
     frame: (f64, f64, f64),
     /// The perspective carried in the final pass's phase model (zero: a flat pass).
     taken: Vector2<f64>,
+    /// The fit's planes less the window's it started from (image frame): where the next
+    /// frame's fit starts from its window's.
+    correction: [PhasePlane; 2],
     /// Binning factor of the fit (1 or 2).
     factor: usize,
     /// The final sweep's robust residual σ and inlier fraction: the next frame's first sweep
@@ -611,20 +633,23 @@ impl WarmModel {
             b: f * p.b,
             c: p.c + p.a * offset[0] + p.b * offset[1],
         });
-        let (x0, y0, s) = self.frame;
-        warm.frame = ((x0 - offset[0]) / f, (y0 - offset[1]) / f, s / f);
+        let (dx, dy, s) = self.frame;
+        warm.frame = (dx / f, dy / f, s / f);
         Some(warm)
     }
 
-    /// This model for a fit from planes `start` over a field whose normalised coordinates
-    /// have half-size `scale` (one frame for all): its centre moved with the lattice (the
-    /// point where `start` has the phases that the last planes had at the last centre) and
-    /// the linear terms' slopes rescaled to `scale`. `None` when `start` is singular.
-    fn moved_to(&self, start: &[PhasePlane; 2], scale: f64) -> Option<(Model, (f64, f64))> {
-        let (x0, y0, s0) = self.frame;
-        let phases = self.model.planes.map(|p| p.at(x0, y0));
-        let m = Matrix2::new(start[0].a, start[0].b, start[1].a, start[1].b);
-        let at = m.try_inverse()? * Vector2::new(phases[0] - start[0].c, phases[1] - start[1].c);
+    /// This model for a fit from planes `start` of the nodes of `mask` over a field whose
+    /// normalised coordinates have half-size `scale` (one frame for all): its centre where it
+    /// was from the nodes' centroid, and the linear terms' slopes rescaled to `scale`. `None`
+    /// when `start` is singular.
+    fn moved_to(
+        &self,
+        start: &[PhasePlane; 2],
+        scale: f64,
+        mask: &NodeMask,
+    ) -> Option<(Model, (f64, f64))> {
+        let (dx, dy, s0) = self.frame;
+        let at = mask.centroid_at(start)? + Vector2::new(dx, dy);
         let mut model = self.model.clone();
         model.planes = *start;
         let ratio = scale / s0;
@@ -636,6 +661,14 @@ impl WarmModel {
 }
 
 impl FieldFit {
+    /// The residual's scale over the white noise's, ≥ 1: how far model error (dot edges the
+    /// model does not describe, clutter the weights kept) adds to the noise. The σs of the
+    /// fit count the white noise alone; two fits of the same image that weigh its pixels
+    /// differently (judged on other residuals) differ by up to about this many times them.
+    pub fn model_error_ratio(&self) -> f64 {
+        self.model_error_ratio
+    }
+
     /// Standard deviation of each plane's phase at the image-frame point `(x, y)`, radians.
     pub fn phase_std_at(&self, x: f64, y: f64) -> [f64; 2] {
         phase_std_at(&self.covariance, self.frame, (x, y))
@@ -1697,6 +1730,21 @@ fn fit_field(
     if mask.count() < MIN_NODES {
         return None;
     }
+    let window = start;
+    // A tracked fit starts where the last frame's fit put the planes, moved as the window's
+    // moved: the window's own offset from the fit (the dots' asymmetry, model error seen
+    // through its band-pass, 0.1 rad on a real stamp) cancels, its noise stays.
+    let start = match warm {
+        Some(w) => [0, 1].map(|l| {
+            let d = &w.correction[l];
+            PhasePlane {
+                a: start[l].a + d.a,
+                b: start[l].b + d.b,
+                c: start[l].c + d.c,
+            }
+        }),
+        None => start,
+    };
     // The field's box, binned while the period allows (docs/design.md#field-fit).
     let field = FieldBox::new(image, &start, mask)?;
     let period = start
@@ -1757,13 +1805,14 @@ fn fit_field(
     // static model error, which does not scatter the result from frame to frame.
     // On a steeply tilted field, read only where the lattice still matches the planes (near
     // the tilt's centre): the dots' edges elsewhere would read as noise and hide the tilt.
-    let mut plan = NoisePlan::new(sub.height(), sub.width());
     let lattice_tilt = tilt.map(|t| LatticeTilt {
         centre: t.centre,
         perspective: [t.perspective.x, t.perspective.y],
     });
-    let white = tilted_white_noise_variance(sub.pixels(), &start_sub, &mut plan, lattice_tilt)
-        .map(|v| v.max(rounding));
+    let white = with_plan(sub.height(), sub.width(), |plan| {
+        tilted_white_noise_variance(sub.pixels(), &start_sub, plan, lattice_tilt)
+    })
+    .map(|v| v.max(rounding));
     // The rival's point in the (binned) sub-image frame.
     let rival = rival.map(|r| Rival {
         at: ((r.at.0 - offset[0]) / f, (r.at.1 - offset[1]) / f),
@@ -1781,19 +1830,27 @@ fn fit_field(
         None => None,
     };
     let mut fit = fit_dot_field_dispatch(&sub, start_sub, mask, goal, warm.as_ref())?;
-    fit.planes = fit.planes.map(|p| {
+    let to_image = |p: PhasePlane| {
         let (a, b) = (p.a / f, p.b / f);
         PhasePlane {
             a,
             b,
             c: p.c - a * offset[0] - b * offset[1],
         }
-    });
-    fit.start = start;
+    };
+    fit.planes = fit.planes.map(to_image);
+    fit.start = window;
     let (x0, y0, s) = fit.frame;
     fit.frame = (f * x0 + offset[0], f * y0 + offset[1], f * s);
-    fit.warm.model.planes = fit.planes;
-    fit.warm.frame = fit.frame;
+    let converged = fit.warm.model.planes.map(to_image);
+    fit.warm.model.planes = converged;
+    fit.warm.correction = [0, 1].map(|l| PhasePlane {
+        a: converged[l].a - window[l].a,
+        b: converged[l].b - window[l].b,
+        c: converged[l].c - window[l].c,
+    });
+    let nodes = mask.centroid_at(&fit.planes)?;
+    fit.warm.frame = (fit.frame.0 - nodes.x, fit.frame.1 - nodes.y, fit.frame.2);
     fit.warm.factor = factor;
     Some(fit)
 }
@@ -1962,7 +2019,7 @@ fn fit_pass(
         // The start sweep measures the harmonics and centres the field: the warm model has
         // both (the centre moved with the lattice).
         Some(warm) => {
-            let (model, (x0, y0)) = warm.moved_to(&start, field.frame.2)?;
+            let (model, (x0, y0)) = warm.moved_to(&start, field.frame.2, mask)?;
             field.frame = (x0, y0, field.frame.2);
             model
         }
@@ -2016,6 +2073,8 @@ fn fit_pass(
         None if free_settled => {}
         None => return None,
     }
+    // The planes the sweeps converged to, where the next frame's sweeps will converge.
+    let converged = model.planes;
     // The planes as the tilt leaves them at the centre.
     if let Some(tilt) = &step.tilt {
         let shift = tilt.planes_shift();
@@ -2046,10 +2105,16 @@ fn fit_pass(
         warm: Box::new(WarmModel {
             model: Model {
                 frozen: Vec::new(),
+                planes: converged,
                 ..model
             },
             frame: field.frame,
             taken: field.warp.map_or(Vector2::zeros(), |w| w.perspective),
+            correction: [PhasePlane {
+                a: 0.0,
+                b: 0.0,
+                c: 0.0,
+            }; 2],
             factor: 1,
             residual_std: step.residual_std,
             inlier_fraction: step.inlier_fraction,

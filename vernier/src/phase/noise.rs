@@ -146,6 +146,24 @@ impl NoisePlan {
     }
 }
 
+/// Noise plans kept per thread for the sizes seen last (a tracked marker's field box changes
+/// by a pixel or two from frame to frame).
+const CACHED_PLANS: usize = 4;
+
+thread_local! {
+    static PLANS: std::cell::RefCell<crate::lru::Lru<(usize, usize), NoisePlan>> =
+        std::cell::RefCell::new(crate::lru::Lru::new(CACHED_PLANS));
+}
+
+/// `f` with this thread's plan for `rows × cols`, made once per size ([`CACHED_PLANS`] sizes
+/// kept): the whole-field fit reads the noise of every marker in every frame.
+pub(crate) fn with_plan<R>(rows: usize, cols: usize, f: impl FnOnce(&mut NoisePlan) -> R) -> R {
+    PLANS.with(|plans| {
+        let mut plans = plans.borrow_mut();
+        f(plans.get_or_insert_with((rows, cols), || NoisePlan::new(rows, cols)))
+    })
+}
+
 /// Index of the first entry of the increasing `cdf` reaching `u·total`.
 fn draw(cdf: &[f64], u: f64) -> usize {
     let total = cdf.last().copied().unwrap_or(0.0);

@@ -90,9 +90,9 @@ fn dot(a: &[f64; BLOCK], b: &[f64; BLOCK]) -> f64 {
     // Constant indices: no iterator to build, no bounds to check (zipped chunk iterators were
     // built out of line, once per product, in the AVX2 sweep).
     for chunk in 0..BLOCK / LANES {
-        for lane in 0..LANES {
+        for (lane, sum) in partial.iter_mut().enumerate() {
             let k = chunk * LANES + lane;
-            partial[lane] += a[k] * b[k];
+            *sum += a[k] * b[k];
         }
     }
     partial.iter().sum()

@@ -39,6 +39,7 @@
 mod matching;
 mod quads;
 mod thumbnail;
+mod tracking;
 
 pub use quads::{Quad, QuadParams};
 
@@ -47,8 +48,8 @@ use crate::grey_image::{GreyImage, Polarity};
 use crate::layout::BitmapLayout;
 use crate::parallel;
 use crate::phase::{
-    fit_dot_field_against, wrap_angle, FieldFit, NodeMask, PhaseAnalysis, PhaseEngine, PhaseParams,
-    PhasePlane, Rival, TiltStart, MIN_IMAGE_SIDE,
+    fit_dot_field_against, fit_dot_field_tracked, wrap_angle, FieldFit, NodeMask, PhaseAnalysis,
+    PhaseEngine, PhaseParams, PhasePlane, Rival, TiltStart, MIN_IMAGE_SIDE,
 };
 use crate::pose::Pose;
 use matching::{best_match, Match, SearchRange, Template};
@@ -475,13 +476,12 @@ impl StampDetector {
                 // The whole-field fits, the costly part, one stamp per thread.
                 let this = &*self;
                 let mut workers = vec![(); parallel::thread_count(this.params.threads, read.len())];
-                let fits =
-                    parallel::map_in_order(&mut workers, &read, |_, r| this.field_for(image, r))
-                        .ok_or_else(|| {
-                            Error::PatternNotFound(
-                                "internal: a stamp-measuring thread panicked".into(),
-                            )
-                        })?;
+                let fits = parallel::map_in_order(&mut workers, &read, |_, r| {
+                    this.field_for(image, r, None)
+                })
+                .ok_or_else(|| {
+                    Error::PatternNotFound("internal: a stamp-measuring thread panicked".into())
+                })?;
                 Ok(read
                     .into_iter()
                     .zip(fits)
@@ -874,16 +874,18 @@ impl StampDetector {
 
     /// The detection of a marker read in its window, whole-field fit included.
     fn measured(&self, image: &GreyImage, reading: WindowReading) -> Option<StampDetection> {
-        let field = self.field_for(image, &reading);
+        let field = self.field_for(image, &reading, None);
         self.finish(image, reading, field)
     }
 
     /// The whole-field fit of a marker read in its window, with its planes (frame of the
-    /// reading's origin), when it beats the window's (`None`: the window's planes stand).
+    /// reading's origin), when it beats the window's (`None`: the window's planes stand);
+    /// started from `previous`, the last frame's fit of the marker, when tracking.
     fn field_for(
         &self,
         image: &GreyImage,
         reading: &WindowReading,
+        previous: Option<&FieldFit>,
     ) -> Option<([PhasePlane; 2], FieldFit)> {
         let (icx, icy) = image.center();
         let at = Vector2::new(
@@ -894,7 +896,7 @@ impl StampDetector {
             phase_std: reading.analysis.phase_std,
             at: (at.x, at.y),
         };
-        self.refine_on_field(image, reading, rival)
+        self.refine_on_field(image, reading, rival, previous)
             .filter(|(_, fit)| fit.beats(&rival))
     }
 
@@ -945,12 +947,14 @@ impl StampDetector {
     /// The reading's planes (frame of its origin) refined on the matched bitmap's whole dot
     /// field (docs/design.md#field-fit), with the fit; `None` when
     /// [`StampParams::field_fit`] is off or the fit fails or cannot beat `rival`, the
-    /// window's fit (the window's planes stand).
+    /// window's fit (the window's planes stand). With `previous`, the fit starts from the
+    /// last frame's model ([`fit_dot_field_tracked`]).
     fn refine_on_field(
         &self,
         image: &GreyImage,
         reading: &WindowReading,
         rival: Rival,
+        previous: Option<&FieldFit>,
     ) -> Option<([PhasePlane; 2], FieldFit)> {
         let (found, planes, origin) = (&reading.found, &reading.planes, reading.origin);
         if !self.params.field_fit {
@@ -991,7 +995,12 @@ impl StampDetector {
             centre,
             perspective: perspective.unwrap_or_default(),
         };
-        let fit = fit_dot_field_against(image, start, &mask, Some(rival), Some(tilt))?;
+        let fit = match previous {
+            Some(previous) => {
+                fit_dot_field_tracked(image, start, &mask, Some(rival), Some(tilt), previous)
+            }
+            None => fit_dot_field_against(image, start, &mask, Some(rival), Some(tilt)),
+        }?;
         Some((fit.planes.map(|p| moved(&p, -1.0)), fit))
     }
 
