@@ -141,14 +141,27 @@ pub(crate) fn decimate_2x2(
     // The input rows the vertical pass reads, each filtered along its columns first.
     let rows_read: Vec<usize> = along_y.sources(rows.start, rb, height).collect();
     let mut horizontal = vec![0.0f32; rows_read.len() * cb];
-    let mut read = Vec::new();
+    // Output `c` reads inputs `2c + k`: the even and odd inputs apart (polyphase), so that
+    // each tap runs over contiguous inputs and all outputs at once (vector arithmetic; a sum
+    // per output is one dependent chain of additions).
+    let (mut even, mut odd) = (Vec::new(), Vec::new());
     for (line, &row) in horizontal.chunks_exact_mut(cb).zip(&rows_read) {
         let input = &pixels[row * width..(row + 1) * width];
-        read.clear();
-        read.extend(along_x.sources(cols.start, cb, width).map(|c| input[c]));
-        for (c, out) in line.iter_mut().enumerate() {
-            let span = &read[2 * c..2 * c + taps_x.len()];
-            *out = span.iter().zip(taps_x).map(|(v, t)| v * t).sum();
+        even.clear();
+        odd.clear();
+        for (i, c) in along_x.sources(cols.start, cb, width).enumerate() {
+            if i % 2 == 0 { &mut even } else { &mut odd }.push(input[c]);
+        }
+        for (j, pair) in taps_x.chunks(2).enumerate() {
+            let te = pair[0];
+            for (o, &v) in line.iter_mut().zip(&even[j..j + cb]) {
+                *o += te * v;
+            }
+            if let Some(&to) = pair.get(1) {
+                for (o, &v) in line.iter_mut().zip(&odd[j..j + cb]) {
+                    *o += to * v;
+                }
+            }
         }
     }
     let mut out = vec![0.0f32; rb * cb];
