@@ -35,14 +35,44 @@ fn modified_seconds(path: &Path) -> Option<f64> {
     Some(modified.duration_since(UNIX_EPOCH).ok()?.as_secs_f64())
 }
 
-/// Detects markers in every image, in order; each image is frame `i` of the series. Returns
-/// the number of images that failed (each reported on stderr, and as a row with `error`).
-/// With `rerun`, every readable image and its result are also logged there. Images above
-/// `limits` are failures (decoded only after their header passed). With `track`
-/// (`Some(reacquire_every)`), the images are one stream and markers are tracked
-/// ([`Detector::detect_next`]).
-pub fn detect_files(
+/// One image's markers (or why there are none), the image when it could be read, and the
+/// time its reading and detection took, ms.
+type Outcome = (
+    Result<Vec<vernier::MarkerPose>, String>,
+    Option<GreyImage>,
+    f64,
+);
+
+/// Reads and detects one image; with `track` (`Some(reacquire_every)`) as the next frame of
+/// a stream ([`Detector::detect_next`]).
+fn detect_one(
     detector: &mut Detector,
+    path: &Path,
+    limits: &DecodeLimits,
+    track: Option<usize>,
+) -> Outcome {
+    let start = Instant::now();
+    let image = GreyImage::open_with_limits(path, limits).map_err(|e| e.to_string());
+    let result = image.as_ref().map_err(Clone::clone).and_then(|image| {
+        match track {
+            Some(every) => detector.detect_next(image, every),
+            None => detector.detect(image),
+        }
+        .map_err(|e| e.to_string())
+    });
+    (result, image.ok(), start.elapsed().as_secs_f64() * 1e3)
+}
+
+/// Detects markers in every image; each image is frame `i` of the series, and the rows come
+/// out in that order. Returns the number of images that failed (each reported on stderr,
+/// and as a row with `error`). With `rerun`, every readable image and its result are also
+/// logged there. Images above `limits` are failures (decoded only after their header
+/// passed). With `track` (`Some(reacquire_every)`), the images are one stream and markers
+/// are tracked ([`Detector::detect_next`]) by the first detector; otherwise each of
+/// `detectors` takes the next image not yet taken, on its own thread (independent images;
+/// `time_ms` is then each image's own time on its thread).
+pub fn detect_files(
+    detectors: &mut [Detector],
     images: &[PathBuf],
     limits: &DecodeLimits,
     format: TableFormat,
@@ -54,18 +84,9 @@ pub fn detect_files(
     let mut table = TableWriter::new(BufWriter::new(stdout), format).map_err(io_error)?;
     let progress = progress_bar(images.len() as u64, "images");
     let mut failures = 0;
-    for (frame, path) in images.iter().enumerate() {
-        let start = Instant::now();
-        let image = GreyImage::open_with_limits(path, limits).map_err(|e| e.to_string());
-        let result = image.as_ref().map_err(Clone::clone).and_then(|image| {
-            match track {
-                Some(every) => detector.detect_next(image, every),
-                None => detector.detect(image),
-            }
-            .map_err(|e| e.to_string())
-        });
-        let time_ms = start.elapsed().as_secs_f64() * 1e3;
-        if let (Some(log), Ok(image)) = (rerun.as_deref_mut(), &image) {
+    let mut write = |frame: usize, (result, image, time_ms): Outcome| -> Result<(), String> {
+        let path = &images[frame];
+        if let (Some(log), Some(image)) = (rerun.as_deref_mut(), &image) {
             log.log_frame(&FrameLog {
                 frame: frame as u64,
                 image,
@@ -85,8 +106,65 @@ pub fn detect_files(
         );
         table.write(&rows).map_err(io_error)?;
         progress.inc(1);
+        Ok(())
+    };
+    match detectors {
+        [] => return Err("internal: no detector".into()),
+        [detector] => {
+            for (frame, path) in images.iter().enumerate() {
+                write(frame, detect_one(detector, path, limits, track))?;
+            }
+        }
+        _ if track.is_some() => {
+            for (frame, path) in images.iter().enumerate() {
+                write(frame, detect_one(&mut detectors[0], path, limits, track))?;
+            }
+        }
+        workers => in_parallel(workers, images, limits, &mut write)?,
     }
     progress.finish_and_clear();
     table.finish().map_err(io_error)?;
     Ok(failures)
+}
+
+/// Each of `workers` takes the next image not yet taken on its own thread; `write` gets the
+/// outcomes in the images' order (an outcome waits for those before it).
+fn in_parallel(
+    workers: &mut [Detector],
+    images: &[PathBuf],
+    limits: &DecodeLimits,
+    write: &mut impl FnMut(usize, Outcome) -> Result<(), String>,
+) -> Result<(), String> {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let next = AtomicUsize::new(0);
+    std::thread::scope(|scope| {
+        let (sender, outcomes) = std::sync::mpsc::channel();
+        for detector in workers.iter_mut() {
+            let (sender, next) = (sender.clone(), &next);
+            scope.spawn(move || loop {
+                let frame = next.fetch_add(1, Ordering::Relaxed);
+                let Some(path) = images.get(frame) else { break };
+                // The image itself is not kept: only the sequential run logs to rerun.
+                let (result, _, time_ms) = detect_one(detector, path, limits, None);
+                if sender.send((frame, (result, None, time_ms))).is_err() {
+                    break;
+                }
+            });
+        }
+        drop(sender);
+        let mut waiting = std::collections::BTreeMap::new();
+        let mut due = 0;
+        for (frame, outcome) in outcomes {
+            waiting.insert(frame, outcome);
+            while let Some(outcome) = waiting.remove(&due) {
+                if let Err(e) = write(due, outcome) {
+                    // Stops the workers after their current image.
+                    next.store(images.len(), Ordering::Relaxed);
+                    return Err(e);
+                }
+                due += 1;
+            }
+        }
+        Ok(())
+    })
 }

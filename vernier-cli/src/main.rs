@@ -76,6 +76,11 @@ struct DetectArgs {
     /// wrapped phase and the pose time series.
     #[arg(long, value_name = "TARGET")]
     rerun: Option<rerun_log::RerunTarget>,
+    /// Images detected at once, each on its own core, when they are independent (no
+    /// `--track`, no `--rerun`): 0 = one per core. Each image's markers are then measured on
+    /// its one thread; the output keeps the images' order.
+    #[arg(long, default_value_t = 0)]
+    jobs: usize,
     /// Image files (PNG, JPEG, TIFF, PNM; 8/16-bit grey or colour), folders (their image
     /// files) or quoted glob patterns (`'run1/*.png'`, `'**/*.tif'`), in natural order.
     #[arg(required = true)]
@@ -205,8 +210,31 @@ fn load_pattern(path: &Path) -> Result<Pattern, String> {
 }
 
 fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
-    let mut detector = args.detector.detector()?;
     let images = inputs::expand_inputs(&args.images)?;
+    let tracking = args.detector.tracking();
+    let jobs = match args.jobs {
+        0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+        n => n,
+    };
+    let jobs = if tracking.is_some() || args.rerun.is_some() {
+        1
+    } else {
+        jobs.min(images.len()).max(1)
+    };
+    let mut detectors = if jobs == 1 {
+        vec![args.detector.detector()?]
+    } else {
+        // One detector (plans, buffers) per image thread, its markers on that thread.
+        let settings = args.detector.settings();
+        let config = settings.to_config().map_err(|e| e.to_string())?;
+        (0..jobs)
+            .map(|_| {
+                vernier::Detector::new(config.clone().with_marker_threads(1))
+                    .map(|d| d.with_pixel_size(settings.pixel_size))
+                    .map_err(|e| e.to_string())
+            })
+            .collect::<Result<Vec<_>, String>>()?
+    };
     let mut rerun = match &args.rerun {
         Some(target) => Some(rerun_log::RerunLog::open(
             target,
@@ -216,11 +244,11 @@ fn detect(args: &DetectArgs) -> Result<ExitCode, String> {
     };
     let limits = vernier::DecodeLimits::with_max_pixels(args.max_pixels);
     let failures = batch::detect_files(
-        &mut detector,
+        &mut detectors,
         &images,
         &limits,
         args.format,
-        args.detector.tracking(),
+        tracking,
         rerun.as_mut(),
     )?;
     if let Some(rerun) = rerun {

@@ -319,3 +319,52 @@ fn calibrate_pools_tiles_and_detect_takes_the_calibrated_pixel_size() {
     assert!(err.contains("pixel_size"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn independent_images_run_in_parallel_and_print_in_input_order() {
+    // Renders of a grid at eight poses, one unreadable file among them: `--jobs 3` (three
+    // images at once) gives the rows of `--jobs 1`, in the images' order, the bad file's
+    // error in its place, and the same failure exit code.
+    let dir = scratch("jobs");
+    let mut images = Vec::new();
+    for k in 0..8 {
+        let image = dir.join(format!("grid_{k}.png"));
+        let pose = format!("{:.2},{:.2},0.{k}", 0.5 * k as f64, -0.3 * k as f64);
+        let status = vernier()
+            .args(["render", "--pattern"])
+            .arg(example_pattern())
+            .args(["--pose", &pose, "--pixel-size", "1.1", "--size", "200x160"])
+            .arg(&image)
+            .status()
+            .unwrap();
+        assert!(status.success());
+        images.push(image);
+    }
+    images.insert(5, dir.join("missing.png"));
+    let rows = |jobs: &str| {
+        let output = vernier()
+            .args(["detect", "--format", "csv", "--jobs", jobs, "--pattern"])
+            .arg(example_pattern())
+            .args(&images)
+            .output()
+            .unwrap();
+        assert_eq!(output.status.code(), Some(1), "{jobs} jobs");
+        // Every column but the time each image took.
+        let text = String::from_utf8(output.stdout).unwrap();
+        let header: Vec<&str> = text.lines().next().unwrap().split(',').collect();
+        let time = header.iter().position(|c| *c == "time_ms").unwrap();
+        text.lines()
+            .map(|line| {
+                let mut cells: Vec<&str> = line.split(',').collect();
+                cells.remove(time);
+                cells.join(",")
+            })
+            .collect::<Vec<_>>()
+    };
+    let (one, three) = (rows("1"), rows("3"));
+    assert_eq!(one, three);
+    assert_eq!(one.len(), 1 + images.len(), "{one:#?}");
+    for (row, image) in one.iter().skip(1).zip(&images) {
+        assert!(row.contains(s(image)), "{row} is not {}", image.display());
+    }
+}

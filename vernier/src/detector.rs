@@ -358,6 +358,17 @@ pub enum DetectorConfig {
 }
 
 impl DetectorConfig {
+    /// The same configuration with each frame's markers measured on `threads` threads (HP
+    /// codes and stamps; 0 = every core): 1 where images are themselves detected in parallel.
+    pub fn with_marker_threads(mut self, threads: usize) -> Self {
+        match &mut self {
+            DetectorConfig::Stamp(p) => p.threads = threads,
+            DetectorConfig::HpCode(p) => p.threads = threads,
+            DetectorConfig::Periodic(_) | DetectorConfig::Megarena(_) => {}
+        }
+        self
+    }
+
     /// Physical period of the pattern, pattern units.
     pub fn period(&self) -> f64 {
         match self {
