@@ -59,9 +59,10 @@ pub struct DetectorFlags {
     #[arg(long = "field-fit")]
     pub field_fit: bool,
     /// Treat the images as one sequence, in order, and track the markers from frame to frame
-    /// (HP codes: the finder search runs on the first frame, on loss and every
-    /// `--reacquire-every` frames; same poses as without it while markers move less than half
-    /// a period per frame).
+    /// (HP codes and framed stamps: the search runs on the first frame, on loss and every
+    /// `--reacquire-every` frames, and each whole-field fit starts from the last frame's; the
+    /// poses of full detection to a small fraction of their σ while markers move less than
+    /// half a period per frame).
     #[arg(long)]
     pub track: bool,
     /// With `--track`, run the full search every this many frames (new markers are found

@@ -423,11 +423,13 @@ pub fn specs() -> Vec<ParamSpec> {
         spec(
             "tracking",
             V::Boolean(true),
-            "Track markers from frame to frame (HP codes): the finder search runs on the first \
-             frame, when a marker is lost or its ID changes, and every reacquire_every frames; \
-             in between each marker is measured again from its predicted position. Same poses \
-             as full detection while markers move less than half a period per frame beyond \
-             the prediction; new markers appear at the next search.",
+            "Track markers from frame to frame (HP codes and framed stamps): the search runs \
+             on the first frame, when a marker is lost or its ID changes, and every \
+             reacquire_every frames; in between each marker is measured again from its \
+             predicted position, its whole-field fit started from the last frame's. The \
+             poses of full detection to a small fraction of their sigma while markers move \
+             less than half a period per frame beyond the prediction; new markers appear at \
+             the next search.",
         ),
         ParamSpec {
             unit: "frames",
