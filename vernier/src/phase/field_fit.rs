@@ -146,6 +146,11 @@ const CONVERGED: f64 = 1e-5;
 /// come sum to less than this fraction of [`CONVERGED`] (`s·q/(1 − q)` after a step `s`): the
 /// same error left, without the sweep that would only confirm it.
 const CONVERGED_TAIL: f64 = 0.1;
+/// … or when they sum to less than this fraction of the planes' own σ at the field's edge (the
+/// noise's; 1e-6 rad is ~1e-3 of it on a real 8-bit marker): stopping there moves the result
+/// by a hundredth of its σ at most, and saves the sweep that a noisy field's slower
+/// contraction would need to reach the fixed tolerance.
+const CONVERGED_TAIL_OF_SIGMA: f64 = 0.01;
 /// Once the weights are frozen, a fit whose step exceeds this many radians of phase at the
 /// field's edge (1.6e-4 of a period) is given up as soon as its contraction cannot bring it
 /// to [`CONVERGED`] within the iterations left ([`sweeps_to_converge`]); a smaller step may
@@ -2345,7 +2350,17 @@ fn converge(
             _ => f64::INFINITY,
         };
         steps.push(largest);
-        let converged = largest < CONVERGED || tail < CONVERGED_TAIL * CONVERGED;
+        let sigma = [0, 1]
+            .map(|l| {
+                (0..3)
+                    .map(|k| step.covariance[(3 * l + k, 3 * l + k)])
+                    .sum::<f64>()
+            })
+            .into_iter()
+            .fold(f64::INFINITY, f64::min)
+            .sqrt();
+        let tail_tolerance = (CONVERGED_TAIL * CONVERGED).max(CONVERGED_TAIL_OF_SIGMA * sigma);
+        let converged = largest < CONVERGED || tail < tail_tolerance;
         if run.frozen_at.is_some() && converged {
             return Ok(step);
         }
