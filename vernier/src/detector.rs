@@ -459,38 +459,85 @@ impl<T: Tracked> History<T> {
     }
 }
 
-impl TrackState {
-    /// The next frame's markers of one type in `history`: tracked by `track` (from the last
-    /// ones and their predicted positions) unless a full search is `due` or tracking loses
-    /// one, else found by `detect`; both run on `detector`.
-    fn next<'h, T: Tracked, D>(
-        history: &'h mut History<T>,
-        counts: (&mut usize, &mut u64, &mut u64),
-        due: bool,
-        detector: &mut D,
-        track: impl FnOnce(&mut D, &[T], &[Vector2<f64>]) -> Result<Option<Vec<T>>>,
-        detect: impl FnOnce(&mut D) -> Result<Vec<T>>,
-    ) -> Result<&'h [T]> {
-        let (since_full, tracked_frames, full_frames) = counts;
-        let mut tracked = None;
-        if !history.last.is_empty() && !due {
-            tracked = track(detector, &history.last, &history.predicted())?;
-        }
-        let found = match tracked {
-            Some(found) => {
-                *since_full += 1;
-                *tracked_frames += 1;
-                found
-            }
-            None => {
-                *since_full = 0;
-                *full_frames += 1;
-                detect(detector)?
-            }
-        };
-        history.before = std::mem::replace(&mut history.last, found);
-        Ok(&history.last)
+/// A detector whose markers can be tracked: found again from their last detections and
+/// predicted positions, or searched for afresh.
+trait Tracker {
+    /// One marker as the detector reports it.
+    type Marker: Tracked;
+    /// The markers of `last` found again at `predicted`; `None` when one is lost.
+    fn track(
+        &mut self,
+        image: &GreyImage,
+        last: &[Self::Marker],
+        predicted: &[Vector2<f64>],
+    ) -> Result<Option<Vec<Self::Marker>>>;
+    /// Every marker of `image`, searched for.
+    fn search(&mut self, image: &GreyImage) -> Result<Vec<Self::Marker>>;
+}
+
+impl Tracker for HpCodeDetector {
+    type Marker = HpCodeMarker;
+    fn track(
+        &mut self,
+        image: &GreyImage,
+        last: &[HpCodeMarker],
+        predicted: &[Vector2<f64>],
+    ) -> Result<Option<Vec<HpCodeMarker>>> {
+        HpCodeDetector::track(self, image, last, predicted)
     }
+    fn search(&mut self, image: &GreyImage) -> Result<Vec<HpCodeMarker>> {
+        self.detect(image)
+    }
+}
+
+impl Tracker for StampDetector {
+    type Marker = StampDetection;
+    fn track(
+        &mut self,
+        image: &GreyImage,
+        last: &[StampDetection],
+        predicted: &[Vector2<f64>],
+    ) -> Result<Option<Vec<StampDetection>>> {
+        StampDetector::track(self, image, last, predicted)
+    }
+    fn search(&mut self, image: &GreyImage) -> Result<Vec<StampDetection>> {
+        self.detect(image)
+    }
+}
+
+/// Counts of [`TrackState`]: frames since the last full search, tracked and full frames.
+type TrackCounts<'a> = (&'a mut usize, &'a mut u64, &'a mut u64);
+
+/// The next frame's markers in `history`, by `detector`: tracked from the last ones and
+/// their predicted positions, unless a full search is `due` or tracking loses one.
+fn next_frame<D: Tracker>(
+    detector: &mut D,
+    image: &GreyImage,
+    history: &mut History<D::Marker>,
+    (since_full, tracked_frames, full_frames): TrackCounts,
+    due: bool,
+) -> Result<Vec<MarkerPose>>
+where
+    for<'m> MarkerPose: From<&'m D::Marker>,
+{
+    let mut tracked = None;
+    if !history.last.is_empty() && !due {
+        tracked = detector.track(image, &history.last, &history.predicted())?;
+    }
+    let found = match tracked {
+        Some(found) => {
+            *since_full += 1;
+            *tracked_frames += 1;
+            found
+        }
+        None => {
+            *since_full = 0;
+            *full_frames += 1;
+            detector.search(image)?
+        }
+    };
+    history.before = std::mem::replace(&mut history.last, found);
+    Ok(history.last.iter().map(MarkerPose::from).collect())
 }
 
 /// How a stream's frames were processed by [`Detector::detect_next`].
@@ -568,28 +615,8 @@ impl Detector {
         let due = reacquire_every > 0 && t.since_full + 1 >= reacquire_every;
         let counts = (&mut t.since_full, &mut t.tracked_frames, &mut t.full_frames);
         let markers = match &mut self.inner {
-            Inner::HpCode(d) => {
-                let found = TrackState::next(
-                    &mut t.hp_codes,
-                    counts,
-                    due,
-                    d.as_mut(),
-                    |d, last, predicted| d.track(image, last, predicted),
-                    |d| d.detect(image),
-                )?;
-                found.iter().map(MarkerPose::from).collect()
-            }
-            Inner::Stamp(d) => {
-                let found = TrackState::next(
-                    &mut t.stamps,
-                    counts,
-                    due,
-                    d.as_mut(),
-                    |d, last, predicted| d.track(image, last, predicted),
-                    |d| d.detect(image),
-                )?;
-                found.iter().map(MarkerPose::from).collect()
-            }
+            Inner::HpCode(d) => next_frame(d.as_mut(), image, &mut t.hp_codes, counts, due)?,
+            Inner::Stamp(d) => next_frame(d.as_mut(), image, &mut t.stamps, counts, due)?,
             _ => {
                 self.track.full_frames += 1;
                 return self.detect(image);
