@@ -17,12 +17,17 @@
 //! (the edge of the part) or imaged as two outlines still counts. Text, grids, stripes and the
 //! dot grid have no such nesting; what else might is rejected by the marker geometry and grid.
 //!
+//! The five threshold levels ([`LEVELS`]) of a pyramid level or window are labelled in one
+//! raster pass ([`binarize::label_levels`]): one classification of each 8-pixel block for all
+//! levels, one read of each row, and each level's runs connected and measured as the row is
+//! read, so that the work grows with the runs of the levels, not with five labellings.
+//!
 //! A blurred finder whose gap no level of the local range opens is read in a window at a
 //! threshold between its own gap's and ring's levels ([`rescue`]). A small finder (modules
 //! under ~4 px) that noise breaks up at full resolution is read on the finest level smoothed
 //! as well (`GreyImage::binomial_3x3`).
 
-use crate::binarize::{Region, Regions, ThresholdMap, BLOCK};
+use crate::binarize::{self, Region, Regions, ThresholdMap, BLOCK};
 use crate::grey_image::{GreyImage, Polarity, BINOMIAL_3X3_NOISE_GAIN};
 use nalgebra::Vector2;
 use std::borrow::Cow;
@@ -301,14 +306,15 @@ impl Labelling {
             return Vec::new();
         }
         self.thresholds.compute(image, floor);
-        let map = &self.thresholds;
-        let want_small = small.is_some();
+        self.label_levels(image);
         let (ox, oy) = (origin.0 as u32, origin.1 as u32);
-        let scan = |(index, (labels, level)): (usize, (&mut Regions, f32))| -> LevelScan {
-            labels.label(image, map, level);
+        let mut finders = Vec::new();
+        let mut unexplained = Vec::new();
+        let want_small = small.is_some();
+        let mut boxes = Vec::new();
+        for (index, labels) in self.regions.iter().enumerate() {
             let regions = &labels.regions;
-            let mut finders = Vec::new();
-            let mut unexplained = Vec::new();
+            let middle = index < MIDDLE_LEVELS;
             for c in regions {
                 let [a, b] = finders_at(regions, c);
                 // A region read only from its gap and ring did stand out as a centre: where a
@@ -316,44 +322,15 @@ impl Labelling {
                 // centre in a gap too narrow for a centre reading at every level, and its
                 // gap-and-ring reading a look-alike of the other polarity (`HPCodeImage_20um.png`
                 // at `v^1.81`). The rescue reads it at its own gap's and ring's levels.
-                if a.is_none() && index < MIDDLE_LEVELS {
+                if a.is_none() && middle {
                     unexplained.extend(rescue::Unexplained::of(c));
                 }
                 finders.extend(a.into_iter().chain(b));
+                if want_small && middle && might_be_small_centre(c) {
+                    let b = c.bbox;
+                    boxes.push([b[0] + ox, b[1] + oy, b[2] + ox, b[3] + oy]);
+                }
             }
-            let small = regions
-                .iter()
-                .filter(|r| want_small && index < MIDDLE_LEVELS && might_be_small_centre(r))
-                .map(|r| {
-                    [
-                        r.bbox[0] + ox,
-                        r.bbox[1] + oy,
-                        r.bbox[2] + ox,
-                        r.bbox[3] + oy,
-                    ]
-                })
-                .collect();
-            (finders, small, unexplained)
-        };
-        let jobs = self.regions.iter_mut().zip(LEVELS).enumerate();
-        let results: Vec<LevelScan> = if image.width() * image.height() >= PARALLEL_MIN_PIXELS {
-            std::thread::scope(|s| {
-                let handles: Vec<_> = jobs.map(|job| s.spawn(move || scan(job))).collect();
-                handles
-                    .into_iter()
-                    .map(|h| h.join().unwrap_or_default())
-                    .collect()
-            })
-        } else {
-            jobs.map(scan).collect()
-        };
-        let mut finders = Vec::new();
-        let mut boxes = Vec::new();
-        let mut unexplained = Vec::new();
-        for (f, b, u) in results {
-            finders.extend(f);
-            boxes.extend(b);
-            unexplained.extend(u);
         }
         if let Some(out) = small {
             out.extend(boxes);
@@ -370,10 +347,23 @@ impl Labelling {
         }
         finders
     }
-}
 
-/// Finders, small-region boxes and unexplained regions of one threshold level.
-type LevelScan = (Vec<Finder>, Vec<[u32; 4]>, Vec<rescue::Unexplained>);
+    /// Labels `image` at every threshold level of [`LEVELS`] in one raster pass
+    /// ([`binarize::label_levels`]); a large image in two, the middle levels on a second
+    /// thread.
+    fn label_levels(&mut self, image: &GreyImage) {
+        let map = &self.thresholds;
+        if image.width() * image.height() < PARALLEL_MIN_PIXELS {
+            binarize::label_levels(&mut self.regions, image, map, &LEVELS);
+            return;
+        }
+        let (middle, outer) = self.regions.split_at_mut(MIDDLE_LEVELS);
+        std::thread::scope(|s| {
+            s.spawn(|| binarize::label_levels(middle, image, map, &LEVELS[..MIDDLE_LEVELS]));
+            binarize::label_levels(outer, image, map, &LEVELS[MIDDLE_LEVELS..]);
+        });
+    }
+}
 
 /// A rectangle of a pyramid level, its pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
