@@ -428,15 +428,21 @@ impl Regions {
                 i += 1;
             }
             let mut label = NO_LABEL;
-            for a in above[i..].iter().take_while(|a| a.start < run.end) {
-                if a.bright == run.bright {
-                    let other = find(&mut self.parent_label, a.label);
-                    label = if label == NO_LABEL {
-                        other
-                    } else {
-                        union_roots(&mut self.parent_label, label, other)
-                    };
+            // Runs alternate in colour: those of the run's colour above it are every other one
+            // from the first or the second that it touches.
+            let first = above
+                .get(i)
+                .map_or(0, |a| usize::from(a.bright != run.bright));
+            for a in above[i..].iter().skip(first).step_by(2) {
+                if a.start >= run.end {
+                    break;
                 }
+                let other = find(&mut self.parent_label, a.label);
+                label = if label == NO_LABEL {
+                    other
+                } else {
+                    union_roots(&mut self.parent_label, label, other)
+                };
             }
             if label == NO_LABEL {
                 // The region's first pixel so far: the run above it is of the other colour.
@@ -658,11 +664,17 @@ fn row_runs(row: &[f32], edges: &[Edge], sets: &mut [Regions]) {
 
 /// Bit `i` set where `chunk[i] > threshold` (a whole block: eight lanes compared at once).
 fn above_mask(chunk: &[f32], threshold: f32) -> u32 {
+    #[cfg(target_arch = "x86_64")]
     if let Ok(block) = <&[f32; BLOCK]>::try_from(chunk) {
-        // One byte per lane (packed compares), gathered into the top byte by a multiply:
-        // byte i times 2^(56 − 7i) lands on bit 56 + i, and no two products overlap.
-        let lanes: [u8; BLOCK] = std::array::from_fn(|i| u8::from(block[i] > threshold));
-        return (u64::from_le_bytes(lanes).wrapping_mul(0x0102_0408_1020_4080) >> 56) as u32;
+        use std::arch::x86_64::{_mm_cmpgt_ps, _mm_loadu_ps, _mm_movemask_ps, _mm_set1_ps};
+        // SAFETY: SSE2 is part of x86_64; the two unaligned loads read lanes 0–3 and 4–7 of
+        // the eight-lane array.
+        return unsafe {
+            let t = _mm_set1_ps(threshold);
+            let low = _mm_movemask_ps(_mm_cmpgt_ps(_mm_loadu_ps(block.as_ptr()), t));
+            let high = _mm_movemask_ps(_mm_cmpgt_ps(_mm_loadu_ps(block.as_ptr().add(4)), t));
+            (low | (high << 4)) as u32
+        };
     }
     chunk
         .iter()

@@ -85,13 +85,21 @@ pub(super) fn candidates(all: Vec<Unexplained>, found: &[Finder]) -> Vec<Unexpla
     let alike = |a: &Unexplained, b: &Unexplained| {
         a.bright == b.bright && a.side < SIZE_ALIKE * b.side && b.side < SIZE_ALIKE * a.side
     };
+    // The finders by column: one explaining `u` lies within `(1 + SAME_MODULE)` of its modules.
+    let mut by_column: Vec<&Finder> = found.iter().collect();
+    by_column.sort_by(|a, b| a.center.x.total_cmp(&b.center.x));
     let mut kept: Vec<Unexplained> = Vec::new();
     for (i, u) in all.iter().enumerate() {
-        let explained = found.iter().any(|f| {
-            f.polarity == u.polarity()
-                && (f.module_px / u.module() - 1.0).abs() < SAME_MODULE
-                && (f.center - u.center).norm() < f.module_px
-        });
+        let reach = (1.0 + SAME_MODULE) * u.module();
+        let first = by_column.partition_point(|f| f.center.x < u.center.x - reach);
+        let explained = by_column[first..]
+            .iter()
+            .take_while(|f| f.center.x <= u.center.x + reach)
+            .any(|f| {
+                f.polarity == u.polarity()
+                    && (f.module_px / u.module() - 1.0).abs() < SAME_MODULE
+                    && (f.center - u.center).norm() < f.module_px
+            });
         if explained {
             continue;
         }
