@@ -19,19 +19,24 @@
 //!    gets its *filled* area and centroid (itself plus everything it encloses), so a shape is
 //!    measured by its outline whatever texture or holes it has inside.
 //! 3. **Every level in one pass** ([`label_levels`]): a multi-threshold scan labels all its
-//!    levels in one raster pass. Each 8-pixel block row is classified once for all levels
-//!    (wholly dark, wholly bright or mixed at each), so a row's pixels are read once and only
-//!    where some level may change colour; each level's runs are then connected to those of the
-//!    row above at once (run-based labelling with a union–find of provisional labels whose
-//!    measures are tallied as runs are labelled, so that the second pass runs over labels, not
-//!    pixels or runs: Rosenfeld and Pfaltz, *Sequential operations in digital picture
-//!    processing*, J. ACM 13(4), 1966; He, Chao and Suzuki, *A run-based two-scan labeling
-//!    algorithm*, IEEE Trans. Image Process. 17(5), 2008). Only two rows of runs per level are
-//!    kept. A component tree of the normalised image (Najman and Couprie 2006; Nistér and
-//!    Stewénius 2008) would share its unions between levels, but its runs of constant level
-//!    number 54 % to 80 % of the runs of all five levels together, and its two trees (bright
-//!    and dark regions) would each process them all, with the regions' parents of the other
-//!    colour and their filled areas still to find per level.
+//!    levels in one raster pass. The thresholds of a block rise with the level, so a pixel's
+//!    *rank*, the number of thresholds it exceeds, tells its colour at every level: it is
+//!    bright at the levels below its rank. Ranks are computed 8 pixels at a time (packed
+//!    compares), only in blocks whose extremes differ in rank or whose rank differs from the
+//!    block before (8-pixel blocks classified once per block row), and where the rank changes
+//!    along a row, the levels between the two ranks change colour. Each level's runs are then
+//!    connected to those of the row above at once: run-based labelling with a union–find of
+//!    provisional labels whose measures are tallied as runs are labelled, so that the second
+//!    pass runs over labels, not pixels or runs (Rosenfeld and Pfaltz, *Sequential operations
+//!    in digital picture processing*, J. ACM 13(4), 1966; He, Chao and Suzuki, *A run-based
+//!    two-scan labeling algorithm*, IEEE Trans. Image Process. 17(5), 2008). Only two rows of
+//!    runs per level are kept. A component tree of the rank image (Najman and Couprie,
+//!    *Building the component tree in quasi-linear time*, IEEE Trans. Image Process. 15(11),
+//!    2006; Nistér and Stewénius, *Linear time maximally stable extremal regions*, ECCV 2008)
+//!    would share unions between levels, but its runs of one rank number 54 % to 80 % of the
+//!    runs of all five levels together on a real frame's pyramid, its two trees (bright and
+//!    dark regions) would each take them all, and each level's regions would still need their
+//!    parents of the other colour and their filled areas, which neither tree holds.
 
 use crate::grey_image::GreyImage;
 
@@ -529,14 +534,15 @@ pub fn label_levels(sets: &mut [Regions], image: &GreyImage, map: &ThresholdMap,
             continue;
         };
         let mut edges = std::mem::take(&mut first.edges);
+        let ladder = Ladder::new(levels);
         for set in sets.iter_mut() {
             set.start();
         }
         for (r, row) in image.pixels().chunks_exact(w).enumerate() {
             if r % BLOCK == 0 {
-                block_edges(map, r / BLOCK, levels, &mut edges);
+                block_edges(map, r / BLOCK, &ladder, &mut edges);
             }
-            row_runs(row, &edges, sets);
+            row_runs(row, &edges, &ladder, sets);
             for set in sets.iter_mut() {
                 set.connect_row(r as u32);
             }
@@ -551,24 +557,51 @@ pub fn label_levels(sets: &mut [Regions], image: &GreyImage, map: &ThresholdMap,
 /// Most levels binarised in one pass ([`label_levels`] makes one pass per this many).
 const MAX_LEVELS: usize = 8;
 
-/// A block of a block row where a row's binarisation at some level may change colour: a block
-/// mixing both colours at some level, or wholly of another colour than the block before it.
+/// The levels of one pass in increasing order. The block thresholds `low + level · range` rise
+/// with the level (the range is never negative), so a pixel is bright at the levels below its
+/// *rank*, the number of thresholds it exceeds, and dark at the others: one number per pixel
+/// tells its colour at every level, and where it changes along a row the levels between the
+/// two ranks change colour.
+struct Ladder {
+    /// Levels, increasing.
+    levels: [f32; MAX_LEVELS],
+    /// Set (index in the caller's order) of each of them.
+    set: [usize; MAX_LEVELS],
+    len: usize,
+}
+
+impl Ladder {
+    fn new(levels: &[f32]) -> Ladder {
+        let len = levels.len().min(MAX_LEVELS);
+        let mut set: [usize; MAX_LEVELS] = std::array::from_fn(|k| k);
+        set[..len].sort_by(|&a, &b| levels[a].total_cmp(&levels[b]));
+        Ladder {
+            levels: std::array::from_fn(|k| if k < len { levels[set[k]] } else { 0.0 }),
+            set,
+            len,
+        }
+    }
+}
+
+/// A block of a block row where a row's rank ([`Ladder`]) may change: a block whose pixels do
+/// not all share one rank, or whose one rank differs from the block's before it.
 #[derive(Clone, Copy, Debug)]
 struct Edge {
     /// Block column.
     column: u32,
-    /// Bit `k` set for the levels at which the block mixes both colours …
-    mixed: u8,
-    /// … and for those at which it is wholly bright (at the others, wholly dark).
-    bright: u8,
+    /// The rank of all its pixels, or [`MIXED`].
+    rank: u8,
+    /// Its thresholds at the ladder's levels, increasing.
     thresholds: [f32; MAX_LEVELS],
 }
 
-/// The [`Edge`]s of block row `by` binarised at `levels` (at most [`MAX_LEVELS`]) into `out`:
-/// the first block, every block mixed at some level and every block wholly of another colour
-/// than the block before it at some level. Between two of them, every level's colour stays
+/// [`Edge::rank`] of a block whose pixels differ in rank.
+const MIXED: u8 = u8::MAX;
+
+/// The [`Edge`]s of block row `by` into `out`: the first block, every mixed block and every
+/// block after a block of another rank or a mixed one. Between two of them, the rank stays
 /// that of the last pixel read.
-fn block_edges(map: &ThresholdMap, by: usize, levels: &[f32], out: &mut Vec<Edge>) {
+fn block_edges(map: &ThresholdMap, by: usize, ladder: &Ladder, out: &mut Vec<Edge>) {
     let bw = map.blocks.0;
     let range = by * bw..(by + 1) * bw;
     let blocks = map.low[range.clone()]
@@ -576,71 +609,69 @@ fn block_edges(map: &ThresholdMap, by: usize, levels: &[f32], out: &mut Vec<Edge
         .zip(&map.range[range.clone()])
         .zip(map.min[range.clone()].iter().zip(&map.max[range]));
     out.clear();
-    let (mut last_mixed, mut last_bright) = (u8::MAX, 0);
+    let mut last = MIXED;
     for (column, ((low, range), (min, max))) in blocks.enumerate() {
-        let mut edge = Edge {
-            column: column as u32,
-            mixed: 0,
-            bright: 0,
-            thresholds: [0.0; MAX_LEVELS],
-        };
-        for (k, (&level, t)) in levels.iter().zip(&mut edge.thresholds).enumerate() {
-            *t = low + level * range;
-            if *max <= *t {
-                continue;
-            }
-            if *min > *t {
-                edge.bright |= 1 << k;
-            } else {
-                edge.mixed |= 1 << k;
-            }
-        }
-        if edge.mixed != 0 || last_mixed != 0 || edge.bright != last_bright {
+        let thresholds: [f32; MAX_LEVELS] = std::array::from_fn(|k| low + ladder.levels[k] * range);
+        let thresholds = &thresholds[..ladder.len];
+        // A pixel's rank rises with its value: the block's extremes bound its pixels' ranks.
+        let (lowest, highest) = (rank(*min, thresholds), rank(*max, thresholds));
+        let rank = if lowest == highest { lowest } else { MIXED };
+        if rank == MIXED || rank != last {
+            let mut edge = Edge {
+                column: column as u32,
+                rank,
+                thresholds: [f32::INFINITY; MAX_LEVELS],
+            };
+            edge.thresholds[..ladder.len].copy_from_slice(thresholds);
             out.push(edge);
         }
-        (last_mixed, last_bright) = (edge.mixed, edge.bright);
+        last = rank;
     }
 }
 
-/// Appends the runs of one row at each level to the row of its set, given the [`Edge`]s of
-/// its block row: at each, 8 pixels at a time as a bit mask compared with the previous
-/// pixel's bit, so that only colour changes cost anything.
-fn row_runs(row: &[f32], edges: &[Edge], sets: &mut [Regions]) {
-    let n = sets.len().min(MAX_LEVELS);
+/// The number of `thresholds` that `v` exceeds.
+fn rank(v: f32, thresholds: &[f32]) -> u8 {
+    thresholds.iter().map(|&t| u8::from(v > t)).sum()
+}
+
+/// Appends the runs of one row at each level of `ladder` to the row of its set, given the
+/// [`Edge`]s of its block row: at each, the ranks of its 8 pixels side by side in a word,
+/// compared with the word shifted by one pixel, so that only changes cost anything.
+fn row_runs(row: &[f32], edges: &[Edge], ladder: &Ladder, sets: &mut [Regions]) {
+    let n = ladder.len;
+    let mut previous = match (edges.first(), row.first()) {
+        (Some(e), Some(&v)) if e.rank == MIXED => rank(v, &e.thresholds[..n]),
+        (Some(e), _) => e.rank,
+        _ => 0,
+    };
+    // Per level (increasing): where its current run started, and its colour.
     let mut start = [0u32; MAX_LEVELS];
-    let mut previous = [0u32; MAX_LEVELS];
-    if let (Some(e), Some(&v)) = (edges.first(), row.first()) {
-        for (k, p) in previous.iter_mut().enumerate().take(n) {
-            let mixed = (e.mixed >> k) & 1 == 1;
-            *p = u32::from(if mixed {
-                v > e.thresholds[k]
-            } else {
-                (e.bright >> k) & 1 == 1
-            });
-        }
-    }
-    // The colour of the run being read: that of the first pixel, then flipped at each change.
-    let mut bright: [bool; MAX_LEVELS] = std::array::from_fn(|k| previous[k] == 1);
+    let mut bright: [bool; MAX_LEVELS] = std::array::from_fn(|k| k < usize::from(previous));
     for e in edges {
         let col0 = e.column as usize * BLOCK;
         let Some(chunk) = row.get(col0..(col0 + BLOCK).min(row.len())) else {
             break;
         };
-        let full = (1u32 << chunk.len()) - 1;
-        for (k, set) in sets.iter_mut().enumerate().take(n) {
-            let mask = if (e.mixed >> k) & 1 == 1 {
-                above_mask(chunk, e.thresholds[k])
-            } else if (e.bright >> k) & 1 == 1 {
-                full
-            } else {
-                0
-            };
-            // Bit i set where pixel i differs from pixel i − 1.
-            let mut changes = (mask ^ ((mask << 1) | previous[k])) & full;
-            previous[k] = (mask >> (chunk.len() - 1)) & 1;
-            while changes != 0 {
-                let c = col0 as u32 + changes.trailing_zeros();
-                set.row.push(Run {
+        let ranks = if e.rank == MIXED {
+            block_ranks(chunk, &e.thresholds[..n])
+        } else {
+            u64::from(e.rank) * 0x0101_0101_0101_0101
+        };
+        // Byte i of `ranks` against pixel i − 1's: non-zero bytes of `changes` mark changes.
+        let before = (ranks << 8) | u64::from(previous);
+        let bytes = if chunk.len() == BLOCK {
+            u64::MAX
+        } else {
+            (1u64 << (8 * chunk.len())) - 1
+        };
+        let mut changes = (ranks ^ before) & bytes;
+        previous = (ranks >> (8 * (chunk.len() - 1))) as u8;
+        while changes != 0 {
+            let shift = changes.trailing_zeros() & !7;
+            let (old, new) = ((before >> shift) as u8, (ranks >> shift) as u8);
+            let c = (col0 + shift as usize / 8) as u32;
+            for k in usize::from(old.min(new))..usize::from(old.max(new)).min(n) {
+                sets[ladder.set[k]].row.push(Run {
                     start: start[k],
                     end: c,
                     label: NO_LABEL,
@@ -648,12 +679,12 @@ fn row_runs(row: &[f32], edges: &[Edge], sets: &mut [Regions]) {
                 });
                 start[k] = c;
                 bright[k] = !bright[k];
-                changes &= changes - 1;
             }
+            changes &= !(0xff << shift);
         }
     }
-    for (k, set) in sets.iter_mut().enumerate().take(n) {
-        set.row.push(Run {
+    for k in 0..n {
+        sets[ladder.set[k]].row.push(Run {
             start: start[k],
             end: row.len() as u32,
             label: NO_LABEL,
@@ -662,24 +693,36 @@ fn row_runs(row: &[f32], edges: &[Edge], sets: &mut [Regions]) {
     }
 }
 
-/// Bit `i` set where `chunk[i] > threshold` (a whole block: eight lanes compared at once).
-fn above_mask(chunk: &[f32], threshold: f32) -> u32 {
+/// The ranks of the pixels of `chunk` (up to 8) against `thresholds` (increasing), byte `i`
+/// that of pixel `i` (the bytes past the chunk are those of its last pixel or zero).
+fn block_ranks(chunk: &[f32], thresholds: &[f32]) -> u64 {
     #[cfg(target_arch = "x86_64")]
     if let Ok(block) = <&[f32; BLOCK]>::try_from(chunk) {
-        use std::arch::x86_64::{_mm_cmpgt_ps, _mm_loadu_ps, _mm_movemask_ps, _mm_set1_ps};
+        use std::arch::x86_64::{
+            _mm_castps_si128, _mm_cmpgt_ps, _mm_cvtsi128_si64, _mm_loadu_ps, _mm_packs_epi32,
+            _mm_packus_epi16, _mm_set1_ps, _mm_setzero_si128, _mm_sub_epi32,
+        };
         // SAFETY: SSE2 is part of x86_64; the two unaligned loads read lanes 0–3 and 4–7 of
         // the eight-lane array.
         return unsafe {
-            let t = _mm_set1_ps(threshold);
-            let low = _mm_movemask_ps(_mm_cmpgt_ps(_mm_loadu_ps(block.as_ptr()), t));
-            let high = _mm_movemask_ps(_mm_cmpgt_ps(_mm_loadu_ps(block.as_ptr().add(4)), t));
-            (low | (high << 4)) as u32
+            let (low, high) = (
+                _mm_loadu_ps(block.as_ptr()),
+                _mm_loadu_ps(block.as_ptr().add(4)),
+            );
+            let (mut rank_low, mut rank_high) = (_mm_setzero_si128(), _mm_setzero_si128());
+            for &t in thresholds {
+                // A true compare is all ones (−1): subtracting it counts it.
+                let t = _mm_set1_ps(t);
+                rank_low = _mm_sub_epi32(rank_low, _mm_castps_si128(_mm_cmpgt_ps(low, t)));
+                rank_high = _mm_sub_epi32(rank_high, _mm_castps_si128(_mm_cmpgt_ps(high, t)));
+            }
+            let words = _mm_packs_epi32(rank_low, rank_high);
+            _mm_cvtsi128_si64(_mm_packus_epi16(words, words)) as u64
         };
     }
-    chunk
-        .iter()
-        .enumerate()
-        .fold(0u32, |m, (i, &v)| m | (u32::from(v > threshold) << i))
+    chunk.iter().enumerate().fold(0u64, |word, (i, &v)| {
+        word | (u64::from(rank(v, thresholds)) << (8 * i))
+    })
 }
 
 /// Root of label `i`, compressing the path (halving).
