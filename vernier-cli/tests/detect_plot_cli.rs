@@ -164,7 +164,11 @@ fn detect_rejects_empty_folder_and_plot_empty_table() {
 #[test]
 fn tracked_sequence_gives_the_same_poses() {
     // The real repeatability sequence, in order: `--track` (finder search on the first frame
-    // only here) prints the poses of the full search.
+    // only here) prints the markers of the full search, their poses to within the tracked
+    // whole-field fit's agreement with the cold one (asserted in units of σ by the library's
+    // tests, vernier/tests/hpcode.rs; here, that the CLI takes the tracked path and keeps
+    // frames and markers apart: far below a pixel and a milliradian, within 1e-2 px and
+    // 1e-4 rad).
     let dir = common::data_dir().join("hpcode");
     let images: Vec<String> = (96..=105)
         .map(|n| {
@@ -205,5 +209,12 @@ fn tracked_sequence_gives_the_same_poses() {
         by_marker(&run(&["--track", "--reacquire-every", "0"])),
     );
     assert_eq!(a.len(), 20, "{full}");
-    assert_eq!(a, b);
+    assert_eq!(a.len(), b.len());
+    for (p, q) in a.iter().zip(&b) {
+        // frame, id, x, y (pattern units), alpha (rad), pixel size (units per pixel).
+        assert_eq!((p[0], p[1]), (q[0], q[1]));
+        let px = |v: f64| v / p[5];
+        assert!(px((p[2] - q[2]).hypot(p[3] - q[3])) < 1e-2, "{p:?} {q:?}");
+        assert!((p[4] - q[4]).abs() < 1e-4, "{p:?} {q:?}");
+    }
 }
