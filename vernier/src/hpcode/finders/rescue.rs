@@ -105,10 +105,12 @@ pub(super) fn candidates(all: Vec<Unexplained>, found: &[Finder]) -> Vec<Unexpla
         }
         // Alike regions nearer than a module are the same region at another level: the first
         // one stands for them.
-        let crowded_or_repeated =
-            index.any_near(&all, u.center, MIN_SPACING * u.module(), |j, v| {
-                j != i && alike(u, v) && ((v.center - u.center).norm() >= u.module() || j < i)
-            });
+        let crowded_or_repeated = index.any_near(
+            &all,
+            (u.center, u.side),
+            MIN_SPACING * u.module(),
+            |j, v| j != i && alike(u, v) && ((v.center - u.center).norm() >= u.module() || j < i),
+        );
         if !crowded_or_repeated {
             kept.push(*u);
         }
@@ -274,58 +276,115 @@ fn gap_and_ring(profile: &[f32], depth: f32) -> Option<(f32, f32)> {
     Some((gap, ring))
 }
 
-/// Unexplained regions bucketed by position, for neighbour queries.
+/// Unexplained regions by size class and cell, for queries of alike regions nearby: regions
+/// alike in size ([`SIZE_ALIKE`]) are in the same or adjacent classes, and a class's cells
+/// are about as large as the queries around its regions reach, so that a query reads a few
+/// cells of three classes and not every small region under a large region's reach.
 struct SpatialIndex {
+    /// Class of `grids[0]`.
+    first_class: i32,
+    grids: Vec<Grid>,
+}
+
+/// The regions of one size class by cell (cells in rows from the origin, their regions listed
+/// one cell after the other).
+struct Grid {
+    side: f64,
     cols: usize,
     rows: usize,
-    buckets: Vec<Vec<usize>>,
+    /// Regions of cell `c`: `items[start[c]..start[c + 1]]`.
+    start: Vec<usize>,
+    items: Vec<usize>,
 }
 
 impl SpatialIndex {
-    /// Bucket side, pixels.
-    const CELL: f64 = 32.0;
-
     fn new(all: &[Unexplained]) -> Self {
-        let extent = all.iter().fold((0.0f64, 0.0f64), |(x, y), u| {
-            (x.max(u.center.x), y.max(u.center.y))
-        });
-        let (cols, rows) = (
-            (extent.0 / Self::CELL) as usize + 1,
-            (extent.1 / Self::CELL) as usize + 1,
-        );
-        let mut buckets = vec![Vec::new(); cols * rows];
-        for (i, u) in all.iter().enumerate() {
-            let (c, r) = Self::bucket(u.center);
-            buckets[r.min(rows - 1) * cols + c.min(cols - 1)].push(i);
-        }
-        SpatialIndex {
-            cols,
-            rows,
-            buckets,
-        }
+        let classes: Vec<i32> = all.iter().map(|u| Self::class(u.side)).collect();
+        let (Some(&first_class), Some(&last)) = (classes.iter().min(), classes.iter().max()) else {
+            return SpatialIndex {
+                first_class: 0,
+                grids: Vec::new(),
+            };
+        };
+        let classes = &classes;
+        let grids = (first_class..=last)
+            .map(|class| {
+                let members = || (0..all.len()).filter(move |&i| classes[i] == class);
+                let side = Self::cell_side(class);
+                let cell = |p: Vector2<f64>| {
+                    (
+                        (p.x.max(0.0) / side) as usize,
+                        (p.y.max(0.0) / side) as usize,
+                    )
+                };
+                let (cols, rows) = members().fold((1, 1), |(c, r), i| {
+                    let (x, y) = cell(all[i].center);
+                    (c.max(x + 1), r.max(y + 1))
+                });
+                let index = |i: usize| {
+                    let (x, y) = cell(all[i].center);
+                    y * cols + x
+                };
+                let mut start = vec![0usize; cols * rows + 1];
+                for i in members() {
+                    start[index(i) + 1] += 1;
+                }
+                for c in 0..cols * rows {
+                    start[c + 1] += start[c];
+                }
+                let mut next = start.clone();
+                let mut items = vec![0usize; start[cols * rows]];
+                for i in members() {
+                    let c = index(i);
+                    items[next[c]] = i;
+                    next[c] += 1;
+                }
+                Grid {
+                    side,
+                    cols,
+                    rows,
+                    start,
+                    items,
+                }
+            })
+            .collect();
+        SpatialIndex { first_class, grids }
     }
 
-    fn bucket(p: Vector2<f64>) -> (usize, usize) {
-        (
-            (p.x.max(0.0) / Self::CELL) as usize,
-            (p.y.max(0.0) / Self::CELL) as usize,
-        )
+    /// Size class of a region of side `side`: `⌊log_{SIZE_ALIKE} side⌋`.
+    fn class(side: f64) -> i32 {
+        (side.ln() / SIZE_ALIKE.ln()).floor() as i32
     }
 
-    /// Whether `test(j, &all[j])` holds for a region `j` within `radius` of `p`.
+    /// Cell side of `class`: the reach of a query around its largest region
+    /// ([`MIN_SPACING`] modules of a third of its side).
+    fn cell_side(class: i32) -> f64 {
+        MIN_SPACING / 3.0 * SIZE_ALIKE.powi(class + 1)
+    }
+
+    /// Whether `test(j, &all[j])` holds for a region `j` alike in size to a region of side
+    /// `side` (within a factor [`SIZE_ALIKE`]) within `radius` of `p`.
     fn any_near(
         &self,
         all: &[Unexplained],
-        p: Vector2<f64>,
+        (p, side): (Vector2<f64>, f64),
         radius: f64,
         test: impl Fn(usize, &Unexplained) -> bool,
     ) -> bool {
-        let reach = Vector2::repeat(radius);
-        let (c0, r0) = Self::bucket(p - reach);
-        let (c1, r1) = Self::bucket(p + reach);
-        for r in r0..=r1.min(self.rows - 1) {
-            for c in c0..=c1.min(self.cols - 1) {
-                for &j in &self.buckets[r * self.cols + c] {
+        let own = Self::class(side);
+        for class in own - 1..=own + 1 {
+            let Some(grid) = usize::try_from(class - self.first_class)
+                .ok()
+                .and_then(|k| self.grids.get(k))
+            else {
+                continue;
+            };
+            let cell = |v: f64, n: usize| ((v.max(0.0) / grid.side) as usize).min(n - 1);
+            let (x0, x1) = (cell(p.x - radius, grid.cols), cell(p.x + radius, grid.cols));
+            let (y0, y1) = (cell(p.y - radius, grid.rows), cell(p.y + radius, grid.rows));
+            for y in y0..=y1 {
+                let cells = grid.start[y * grid.cols + x0]..grid.start[y * grid.cols + x1 + 1];
+                for &j in &grid.items[cells] {
                     if (all[j].center - p).norm() < radius && test(j, &all[j]) {
                         return true;
                     }
@@ -333,5 +392,47 @@ impl SpatialIndex {
             }
         }
         false
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spatial_index_finds_what_a_scan_of_all_regions_finds() {
+        // Regions of sides 3.5 to 120 px over 700 × 500 px, dense and sparse, both colours.
+        let mut state = 7u32;
+        let mut next = || {
+            state = state.wrapping_mul(1664525).wrapping_add(1013904223);
+            (state >> 8) as f64 / (1u32 << 24) as f64
+        };
+        let all: Vec<Unexplained> = (0..600)
+            .map(|_| Unexplained {
+                center: Vector2::new(700.0 * next(), 500.0 * next()),
+                side: 3.5 * (120.0f64 / 3.5).powf(next().powi(3)),
+                bright: next() < 0.5,
+            })
+            .collect();
+        let index = SpatialIndex::new(&all);
+        let alike = |a: &Unexplained, b: &Unexplained| {
+            a.side < SIZE_ALIKE * b.side && b.side < SIZE_ALIKE * a.side
+        };
+        let mut hits = 0;
+        for (i, u) in all.iter().enumerate() {
+            for radius in [2.0 * u.module(), MIN_SPACING * u.module()] {
+                let test = |j: usize, v: &Unexplained| j != i && alike(u, v);
+                let expected = all
+                    .iter()
+                    .enumerate()
+                    .any(|(j, v)| (v.center - u.center).norm() < radius && test(j, v));
+                assert_eq!(
+                    index.any_near(&all, (u.center, u.side), radius, test),
+                    expected
+                );
+                hits += usize::from(expected);
+            }
+        }
+        assert!(hits > 100 && hits < 1100, "{hits}");
     }
 }
