@@ -303,17 +303,6 @@ fn pool_2x2(v: &[f32], w: usize, h: usize, op: fn(f32, f32) -> f32) -> Vec<f32> 
     out
 }
 
-/// A horizontal run of pixels of one colour in the row being labelled or the one above it,
-/// with its provisional label.
-#[derive(Clone, Copy, Debug)]
-struct Run {
-    start: u32,
-    /// One past the last column.
-    end: u32,
-    label: u32,
-    bright: bool,
-}
-
 /// No label (the first row has no run above it).
 const NO_LABEL: u32 = u32::MAX;
 
@@ -332,27 +321,29 @@ struct Tally {
 }
 
 impl Tally {
-    fn new(run: &Run, row: u32, above: u32) -> Tally {
+    /// The tally of a region whose first run is `[start, end)` of row `row`, `bright` or not,
+    /// below a run labelled `above`.
+    fn new(start: u32, end: u32, row: u32, bright: bool, above: u32) -> Tally {
         Tally {
             area: 0,
             sum_x: 0,
             sum_y: 0,
-            bbox: [run.start, row, run.end - 1, row],
+            bbox: [start, row, end - 1, row],
             above,
-            bright: run.bright,
+            bright,
         }
     }
 
-    /// Adds the pixels of `run` of row `row` (a row at or below all those added before).
-    fn add(&mut self, run: &Run, row: u32) {
-        let len = u64::from(run.end - run.start);
+    /// Adds the run `[start, end)` of row `row` (a row at or below all those added before).
+    fn add(&mut self, start: u32, end: u32, row: u32) {
+        let len = u64::from(end - start);
         self.area += len;
         // Σx over the run: len·(start + end − 1)/2, an integer.
-        self.sum_x += len * (u64::from(run.start) + u64::from(run.end) - 1) / 2;
+        self.sum_x += len * (u64::from(start) + u64::from(end) - 1) / 2;
         self.sum_y += len * u64::from(row);
         let b = &mut self.bbox;
-        b[0] = b[0].min(run.start);
-        b[2] = b[2].max(run.end - 1);
+        b[0] = b[0].min(start);
+        b[2] = b[2].max(end - 1);
         b[3] = row;
     }
 
@@ -395,9 +386,16 @@ pub struct Region {
 pub struct Regions {
     /// The blocks of the current block row where a row may change colour.
     edges: Vec<Edge>,
-    /// Runs of the row above the one being labelled, and of that row.
-    above: Vec<Run>,
-    row: Vec<Run>,
+    /// The runs of the row above the one being labelled: where each ends (one past its last
+    /// column; a run starts where the one before it ends, and colours alternate from the
+    /// row's first), its provisional label, and the colour of the first.
+    above_ends: Vec<u32>,
+    above_labels: Vec<u32>,
+    above_bright: bool,
+    /// The same for the row being labelled.
+    ends: Vec<u32>,
+    labels: Vec<u32>,
+    bright: bool,
     /// Union–find forest of the provisional labels (a root is the smallest label of its
     /// region: that of its first run in raster order).
     parent_label: Vec<u32>,
@@ -416,8 +414,10 @@ impl Regions {
     }
 
     fn start(&mut self) {
-        self.above.clear();
-        self.row.clear();
+        self.above_ends.clear();
+        self.above_labels.clear();
+        self.ends.clear();
+        self.labels.clear();
         self.parent_label.clear();
         self.tallies.clear();
     }
@@ -426,41 +426,44 @@ impl Regions {
     /// touches in the row above, merging theirs, or a new one, and tallies it; the row then
     /// becomes the row above.
     fn connect_row(&mut self, r: u32) {
-        let above = &self.above;
-        let mut i = 0;
-        for run in self.row.iter_mut() {
-            while i < above.len() && above[i].end <= run.start {
+        let (above, above_labels) = (&self.above_ends, &self.above_labels);
+        let n = above.len();
+        let (mut i, mut start) = (0, 0);
+        for (j, &end) in self.ends.iter().enumerate() {
+            let bright = self.bright ^ (j % 2 == 1);
+            // The run above that holds `start`.
+            while i < n && above[i] <= start {
                 i += 1;
             }
             let mut label = NO_LABEL;
             // Runs alternate in colour: those of the run's colour above it are every other one
             // from the first or the second that it touches.
-            let first = above
-                .get(i)
-                .map_or(0, |a| usize::from(a.bright != run.bright));
-            for a in above[i..].iter().skip(first).step_by(2) {
-                if a.start >= run.end {
-                    break;
-                }
-                let other = find(&mut self.parent_label, a.label);
+            let mut k = i + usize::from(self.above_bright ^ (i % 2 == 1) != bright);
+            while k < n && (k == 0 || above[k - 1] < end) {
+                let other = find(&mut self.parent_label, above_labels[k]);
                 label = if label == NO_LABEL {
                     other
                 } else {
                     union_roots(&mut self.parent_label, label, other)
                 };
+                k += 2;
             }
             if label == NO_LABEL {
                 // The region's first pixel so far: the run above it is of the other colour.
                 label = self.tallies.len() as u32;
-                let over = above.get(i).map_or(NO_LABEL, |a| a.label);
-                self.tallies.push(Tally::new(run, r, over));
+                let over = above_labels.get(i).copied().unwrap_or(NO_LABEL);
+                self.tallies.push(Tally::new(start, end, r, bright, over));
                 self.parent_label.push(label);
             }
-            run.label = label;
-            self.tallies[label as usize].add(run, r);
+            self.labels.push(label);
+            self.tallies[label as usize].add(start, end, r);
+            start = end;
         }
-        std::mem::swap(&mut self.above, &mut self.row);
-        self.row.clear();
+        std::mem::swap(&mut self.above_ends, &mut self.ends);
+        std::mem::swap(&mut self.above_labels, &mut self.labels);
+        self.above_bright = self.bright;
+        self.ends.clear();
+        self.labels.clear();
     }
 
     /// Regions from the labels: their measures, parents and filled measures.
@@ -634,9 +637,10 @@ fn rank(v: f32, thresholds: &[f32]) -> u8 {
     thresholds.iter().map(|&t| u8::from(v > t)).sum()
 }
 
-/// Appends the runs of one row at each level of `ladder` to the row of its set, given the
-/// [`Edge`]s of its block row: at each, the ranks of its 8 pixels side by side in a word,
-/// compared with the word shifted by one pixel, so that only changes cost anything.
+/// The runs of one row at each level of `ladder`, as the first run's colour and every run's
+/// end in its set, given the [`Edge`]s of its block row: at each, the ranks of its 8 pixels
+/// side by side in a word, compared with the word shifted by one pixel, so that only changes
+/// cost anything.
 fn row_runs(row: &[f32], edges: &[Edge], ladder: &Ladder, sets: &mut [Regions]) {
     let n = ladder.len;
     let mut previous = match (edges.first(), row.first()) {
@@ -644,9 +648,10 @@ fn row_runs(row: &[f32], edges: &[Edge], ladder: &Ladder, sets: &mut [Regions]) 
         (Some(e), _) => e.rank,
         _ => 0,
     };
-    // Per level (increasing): where its current run started, and its colour.
-    let mut start = [0u32; MAX_LEVELS];
-    let mut bright: [bool; MAX_LEVELS] = std::array::from_fn(|k| k < usize::from(previous));
+    // The row's first colour at each level: bright below the first pixel's rank.
+    for (k, &set) in ladder.set.iter().enumerate().take(n) {
+        sets[set].bright = k < usize::from(previous);
+    }
     for e in edges {
         let col0 = e.column as usize * BLOCK;
         let Some(chunk) = row.get(col0..(col0 + BLOCK).min(row.len())) else {
@@ -671,25 +676,13 @@ fn row_runs(row: &[f32], edges: &[Edge], ladder: &Ladder, sets: &mut [Regions]) 
             let (old, new) = ((before >> shift) as u8, (ranks >> shift) as u8);
             let c = (col0 + shift as usize / 8) as u32;
             for k in usize::from(old.min(new))..usize::from(old.max(new)).min(n) {
-                sets[ladder.set[k]].row.push(Run {
-                    start: start[k],
-                    end: c,
-                    label: NO_LABEL,
-                    bright: bright[k],
-                });
-                start[k] = c;
-                bright[k] = !bright[k];
+                sets[ladder.set[k]].ends.push(c);
             }
             changes &= !(0xff << shift);
         }
     }
     for k in 0..n {
-        sets[ladder.set[k]].row.push(Run {
-            start: start[k],
-            end: row.len() as u32,
-            label: NO_LABEL,
-            bright: bright[k],
-        });
+        sets[ladder.set[k]].ends.push(row.len() as u32);
     }
 }
 
