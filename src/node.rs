@@ -16,7 +16,7 @@
 //!   node's clock: `/clock` under `use_sim_time`) and watches whether anyone subscribes to
 //!   `~/debug_image`.
 //!
-//! Warnings and errors also go to `/rosout` ([`RosoutLogger`]).
+//! Warnings and errors also go to `/rosout` (`RosoutLogger`).
 //!
 //! Parameter changes are validated ([`NodeParams::with`], rejected with a reason) and take
 //! effect on the next frame.

@@ -691,7 +691,7 @@ impl FieldFit {
     ///   sees, and the window wins.
     /// * on a tilted field (a significant perspective, [`FieldFit::tilt_weight`] above 0),
     ///   also when the window's estimated error exceeds the fit's: see
-    ///   [`FieldFit::window_bias_shown`].
+    ///   `FieldFit::window_bias_shown`.
     pub fn beats(&self, rival: &Rival) -> bool {
         let field = rival.field_std(&self.covariance, self.frame, self.model_error_ratio);
         let window = rival.std();
