@@ -18,9 +18,14 @@
 //! dot grid have no such nesting; what else might is rejected by the marker geometry and grid.
 //!
 //! The five threshold levels ([`LEVELS`]) of a pyramid level or window are labelled in one
-//! raster pass ([`binarize::label_levels`]): one classification of each 8-pixel block for all
-//! levels, one read of each row, and each level's runs connected and measured as the row is
-//! read, so that the work grows with the runs of the levels, not with five labellings.
+//! raster pass ([`binarize::label_levels`]): a pixel's rank among a block's five thresholds
+//! gives its colour at every level, so each row is read once, 8 pixels at a time and only in
+//! blocks where some level may change colour, and each level's runs are connected to the row
+//! above and measured as the row is read; the regions are those of five separate labellings,
+//! each level's with its own parents and filled areas, for the nested-region test. (A
+//! component tree of the rank image would share work between levels, but its runs of one rank
+//! number over half of all levels' runs together, and it holds neither the parents of the
+//! other colour nor the filled areas; see [`crate::binarize`].)
 //!
 //! A blurred finder whose gap no level of the local range opens is read in a window at a
 //! threshold between its own gap's and ring's levels ([`rescue`]). A small finder (modules
@@ -155,34 +160,53 @@ impl FinderScanner {
         }
         let levels = self.build_pyramid(image);
         let min_contrast = min_contrast.map(|c| c as f32);
+        let (binned, labelling) = (&self.binned, &mut self.labelling);
+        let level_image = |level: usize| match level {
+            0 => image,
+            _ => &binned[level - 1],
+        };
         let mut found = Vec::new();
-        // Bounding boxes of small regions of the level above, its pixels.
-        let mut small = Vec::new();
-        for level in (0..=levels).rev() {
-            let level_image = if level == 0 {
-                image
-            } else {
-                &self.binned[level - 1]
-            };
-            let windows = if level == levels {
-                vec![Window::whole(level_image)]
-            } else {
-                refine_windows(level_image, &small)
-            };
-            if windows.is_empty() {
-                break;
+        std::thread::scope(|s| {
+            // The finer levels' floors (a window's is that of its whole level: a window is
+            // mostly texture), read while the coarsest level is scanned.
+            let mut floors = (min_contrast.is_none() && levels > 0).then(|| {
+                s.spawn(move || {
+                    (0..levels)
+                        .map(|level| ThresholdMap::noise_floor(level_image(level)))
+                        .collect::<Vec<f32>>()
+                })
+            });
+            let mut finer_floors = Vec::new();
+            // Bounding boxes of small regions of the level above, its pixels.
+            let mut small = Vec::new();
+            for level in (0..=levels).rev() {
+                let level_image = level_image(level);
+                let windows = if level == levels {
+                    vec![Window::whole(level_image)]
+                } else {
+                    refine_windows(level_image, &small)
+                };
+                if windows.is_empty() {
+                    break;
+                }
+                let floor = match min_contrast {
+                    Some(c) => Some(c),
+                    // A whole level: its own blocks give its floor.
+                    None if windows.len() == 1 && windows[0].is_whole(level_image) => None,
+                    None => {
+                        if let Some(handle) = floors.take() {
+                            finer_floors = handle.join().unwrap_or_default();
+                        }
+                        let floor = finer_floors.get(level).copied();
+                        Some(floor.unwrap_or_else(|| ThresholdMap::noise_floor(level_image)))
+                    }
+                };
+                let (finders, finer_small) =
+                    scan_windows(labelling, level_image, &windows, floor, level > 0);
+                found.extend(finders.into_iter().map(|f| f.in_full_image(level)));
+                small = finer_small;
             }
-            // The floor of a window is that of its whole level (a window is mostly texture).
-            let floor = match (min_contrast, windows.len()) {
-                (Some(c), _) => Some(c),
-                (None, 1) if windows[0].is_whole(level_image) => None,
-                (None, _) => Some(ThresholdMap::noise_floor(level_image)),
-            };
-            let (finders, finer_small) =
-                scan_windows(&mut self.labelling, level_image, &windows, floor, level > 0);
-            found.extend(finders.into_iter().map(|f| f.in_full_image(level)));
-            small = finer_small;
-        }
+        });
         let unique = dedup(found);
         unique
             .iter()
