@@ -690,7 +690,7 @@ fn work_loop(
             Input::Raw(image) => processor.process(image),
             Input::Compressed(image) => processor.process_compressed(image),
         };
-        let (output, grey) = match processed {
+        let output = match processed {
             Ok(done) => done,
             Err(bad) => {
                 // A compressed image that does not decode, or one above max_image_pixels.
@@ -718,9 +718,11 @@ fn work_loop(
         let mut failures = publish(&output, &mut publishers, node, names, processor.params());
         // The annotated image costs a copy of the frame: only while someone subscribes.
         if shared.debug_wanted.load(Ordering::Relaxed) {
-            let debug = annotate(&grey, &output.raw, &output.markers.header);
-            if let Err(e) = publishers.debug.publish(debug) {
-                failures.push(format!("debug image: {e:?}"));
+            if let Some(grey) = processor.last_frame() {
+                let debug = annotate(grey, &output.raw, &output.markers.header);
+                if let Err(e) = publishers.debug.publish(debug) {
+                    failures.push(format!("debug image: {e:?}"));
+                }
             }
         }
         {

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Instant, UNIX_EPOCH};
 
 use indicatif::{ProgressBar, ProgressStyle};
-use vernier::{DecodeLimits, Detector, GreyImage};
+use vernier::{DecodeLimits, Detector, FrameReader, GreyImage};
 
 use crate::pose_table::{PoseRow, TableFormat, TableWriter};
 use crate::rerun_log::{FrameLog, RerunLog};
@@ -35,24 +35,22 @@ fn modified_seconds(path: &Path) -> Option<f64> {
     Some(modified.duration_since(UNIX_EPOCH).ok()?.as_secs_f64())
 }
 
-/// One image's markers (or why there are none), the image when it could be read, and the
-/// time its reading and detection took, ms.
-type Outcome = (
-    Result<Vec<vernier::MarkerPose>, String>,
-    Option<GreyImage>,
-    f64,
-);
+/// One image's markers (or why there are none) and the time its reading and detection
+/// took, ms.
+type Outcome = (Result<Vec<vernier::MarkerPose>, String>, f64);
 
-/// Reads and detects one image; with `track` (`Some(reacquire_every)`) as the next frame of
-/// a stream ([`Detector::detect_next`]).
-fn detect_one(
+/// Reads (into `reader`'s buffers, kept from image to image) and detects one image; with
+/// `track` (`Some(reacquire_every)`) as the next frame of a stream
+/// ([`Detector::detect_next`]). Returns the image too when it could be read.
+fn detect_one<'r>(
     detector: &mut Detector,
+    reader: &'r mut FrameReader,
     path: &Path,
     limits: &DecodeLimits,
     track: Option<usize>,
-) -> Outcome {
+) -> (Outcome, Option<&'r GreyImage>) {
     let start = Instant::now();
-    let image = GreyImage::open_with_limits(path, limits).map_err(|e| e.to_string());
+    let image = reader.read(path, limits).map_err(|e| e.to_string());
     let result = image.as_ref().map_err(Clone::clone).and_then(|image| {
         match track {
             Some(every) => detector.detect_next(image, every),
@@ -60,7 +58,8 @@ fn detect_one(
         }
         .map_err(|e| e.to_string())
     });
-    (result, image.ok(), start.elapsed().as_secs_f64() * 1e3)
+    let time_ms = start.elapsed().as_secs_f64() * 1e3;
+    ((result, time_ms), image.ok())
 }
 
 /// Detects markers in every image; each image is frame `i` of the series, and the rows come
@@ -84,9 +83,12 @@ pub fn detect_files(
     let mut table = TableWriter::new(BufWriter::new(stdout), format).map_err(io_error)?;
     let progress = progress_bar(images.len() as u64, "images");
     let mut failures = 0;
-    let mut write = |frame: usize, (result, image, time_ms): Outcome| -> Result<(), String> {
+    let mut write = |frame: usize,
+                     (result, time_ms): Outcome,
+                     image: Option<&GreyImage>|
+     -> Result<(), String> {
         let path = &images[frame];
-        if let (Some(log), Some(image)) = (rerun.as_deref_mut(), &image) {
+        if let (Some(log), Some(image)) = (rerun.as_deref_mut(), image) {
             log.log_frame(&FrameLog {
                 frame: frame as u64,
                 image,
@@ -108,19 +110,19 @@ pub fn detect_files(
         progress.inc(1);
         Ok(())
     };
+    let sequential = detectors.len() == 1 || track.is_some();
     match detectors {
         [] => return Err("internal: no detector".into()),
-        [detector] => {
+        [detector, ..] if sequential => {
+            let mut reader = FrameReader::default();
             for (frame, path) in images.iter().enumerate() {
-                write(frame, detect_one(detector, path, limits, track))?;
+                let (outcome, image) = detect_one(detector, &mut reader, path, limits, track);
+                write(frame, outcome, image)?;
             }
         }
-        _ if track.is_some() => {
-            for (frame, path) in images.iter().enumerate() {
-                write(frame, detect_one(&mut detectors[0], path, limits, track))?;
-            }
-        }
-        workers => in_parallel(workers, images, limits, &mut write)?,
+        workers => in_parallel(workers, images, limits, &mut |frame, outcome| {
+            write(frame, outcome, None)
+        })?,
     }
     progress.finish_and_clear();
     table.finish().map_err(io_error)?;
@@ -141,13 +143,16 @@ fn in_parallel(
         let (sender, outcomes) = std::sync::mpsc::channel();
         for detector in workers.iter_mut() {
             let (sender, next) = (sender.clone(), &next);
-            scope.spawn(move || loop {
-                let frame = next.fetch_add(1, Ordering::Relaxed);
-                let Some(path) = images.get(frame) else { break };
-                // The image itself is not kept: only the sequential run logs to rerun.
-                let (result, _, time_ms) = detect_one(detector, path, limits, None);
-                if sender.send((frame, (result, None, time_ms))).is_err() {
-                    break;
+            scope.spawn(move || {
+                let mut reader = FrameReader::default();
+                loop {
+                    let frame = next.fetch_add(1, Ordering::Relaxed);
+                    let Some(path) = images.get(frame) else { break };
+                    // The image itself is not sent: only the sequential run logs to rerun.
+                    let (outcome, _) = detect_one(detector, &mut reader, path, limits, None);
+                    if sender.send((frame, outcome)).is_err() {
+                        break;
+                    }
                 }
             });
         }

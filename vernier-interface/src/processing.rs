@@ -103,6 +103,9 @@ pub struct Processor {
     config: DetectorConfig,
     params: NodeParams,
     generation: u64,
+    /// The last frame processed, grey; raw frames are converted into its buffer, allocated
+    /// once per size rather than once per frame.
+    frame: Option<GreyImage>,
 }
 
 impl Processor {
@@ -114,7 +117,14 @@ impl Processor {
             config,
             params,
             generation,
+            frame: None,
         })
+    }
+
+    /// The last frame processed, grey (`None` before the first one): what the debug image
+    /// draws on.
+    pub fn last_frame(&self) -> Option<&GreyImage> {
+        self.frame.as_ref()
     }
 
     /// The parameters in use.
@@ -141,25 +151,42 @@ impl Processor {
     }
 
     /// Processes one image message. `Err` means the message itself is bad; a valid image
-    /// without markers gives an empty marker array and `detect_error`.
-    pub fn process(&mut self, msg: &Image) -> Result<(FrameOutput, GreyImage), BadImage> {
+    /// without markers gives an empty marker array and `detect_error`. The frame, grey, is
+    /// then [`Processor::last_frame`].
+    pub fn process(&mut self, msg: &Image) -> Result<FrameOutput, BadImage> {
         vernier::limits::check_image_pixels(
             u64::from(msg.width),
             u64::from(msg.height),
             self.params.max_image_pixels,
         )
         .map_err(|e| BadImage(e.to_string()))?;
-        let grey = to_grey(msg)?;
-        Ok(self.process_grey(&msg.header, grey))
+        let format = check_image(msg)?;
+        let (width, height, step) = (msg.width as usize, msg.height as usize, msg.step as usize);
+        let bad = |e: vernier::Error| BadImage(e.to_string());
+        let grey = match &mut self.frame {
+            Some(frame) => {
+                frame
+                    .assign_raw(width, height, step, format, &msg.data)
+                    .map_err(bad)?;
+                frame
+            }
+            None => self
+                .frame
+                .insert(GreyImage::from_raw(width, height, step, format, &msg.data).map_err(bad)?),
+        };
+        Ok(detect_frame(
+            &mut self.detector,
+            &self.params,
+            &self.config,
+            grey,
+            &msg.header,
+        ))
     }
 
     /// Processes one `sensor_msgs/CompressedImage` (PNG or JPEG, as image_transport's
     /// `compressed` plugin publishes them; the format is found from the bytes). Its size is
     /// checked against `max_image_pixels` from the file header, before decoding.
-    pub fn process_compressed(
-        &mut self,
-        msg: &CompressedImage,
-    ) -> Result<(FrameOutput, GreyImage), BadImage> {
+    pub fn process_compressed(&mut self, msg: &CompressedImage) -> Result<FrameOutput, BadImage> {
         let format = msg.format.to_ascii_lowercase();
         if format.contains("compresseddepth") {
             return Err(BadImage(format!(
@@ -171,24 +198,36 @@ impl Processor {
         let name = std::path::Path::new("compressed image");
         let grey = GreyImage::decode_bytes(&msg.data, name, &limits)
             .map_err(|e| BadImage(format!("`{}` message: {e}", msg.format)))?;
-        Ok(self.process_grey(&msg.header, grey))
+        let grey = self.frame.insert(grey);
+        Ok(detect_frame(
+            &mut self.detector,
+            &self.params,
+            &self.config,
+            grey,
+            &msg.header,
+        ))
     }
+}
 
-    fn process_grey(&mut self, header: &Header, grey: GreyImage) -> (FrameOutput, GreyImage) {
-        let found = match self.params.tracking {
-            Some(every) => self.detector.detect_next(&grey, every),
-            None => self.detector.detect(&grey),
-        };
-        let (mut markers, detect_error) = match found {
-            Ok(markers) => (markers, None),
-            Err(e) => (Vec::new(), Some(e.to_string())),
-        };
-        let params = &self.params;
-        markers.retain(|m| params.tracks(m.id) && m.quality >= params.min_quality);
-        vernier::detector::flag_duplicate_ids(&mut markers);
-        let output = build_output(header, markers, detect_error, params, self.config.period());
-        (output, grey)
-    }
+/// Detects the markers of `grey` with `detector` and builds the frame's messages.
+fn detect_frame(
+    detector: &mut Detector,
+    params: &NodeParams,
+    config: &DetectorConfig,
+    grey: &GreyImage,
+    header: &Header,
+) -> FrameOutput {
+    let found = match params.tracking {
+        Some(every) => detector.detect_next(grey, every),
+        None => detector.detect(grey),
+    };
+    let (mut markers, detect_error) = match found {
+        Ok(markers) => (markers, None),
+        Err(e) => (Vec::new(), Some(e.to_string())),
+    };
+    markers.retain(|m| params.tracks(m.id) && m.quality >= params.min_quality);
+    vernier::detector::flag_duplicate_ids(&mut markers);
+    build_output(header, markers, detect_error, params, config.period())
 }
 
 /// Builds the output messages of one frame from the detected markers (pattern units).
@@ -502,7 +541,7 @@ mod tests {
         ]);
         let mut processor = Processor::new(p, 0).unwrap_or_else(|e| panic!("{e}"));
         let truth = vernier::Pose::planar(1.25, -2.5, 0.3, 1.0);
-        let (out, _) = processor
+        let out = processor
             .process(&grid_frame(&truth))
             .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(out.markers.header.stamp, Time { sec: 5, nanosec: 6 });
@@ -525,13 +564,21 @@ mod tests {
         assert_eq!(out.tf.transforms.len(), 1);
         assert_eq!(out.tf.transforms[0].child_frame_id, "vernier_marker_0");
         // A blank frame: valid message, nothing found, empty array with the stamp.
-        let (empty, _) = processor
+        let empty = processor
             .process(&mono8(256, 256, vec![0; 256 * 256]))
             .unwrap_or_else(|e| panic!("{e}"));
         assert!(empty.markers.markers.is_empty());
         assert!(empty.poses.is_empty() && empty.tf.transforms.is_empty());
         assert!(empty.detect_error.is_some());
         assert_eq!(empty.markers.header.stamp, Time { sec: 5, nanosec: 6 });
+        // The frame buffer, reused across sizes, holds the last frame as a fresh conversion
+        // gives it; a bad message leaves it as it was.
+        let blank = mono8(256, 256, vec![0; 256 * 256]);
+        let fresh = to_grey(&blank).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(processor.last_frame(), Some(&fresh));
+        let short = mono8(256, 256, vec![0; 100]);
+        assert!(processor.process(&short).is_err());
+        assert_eq!(processor.last_frame(), Some(&fresh));
     }
 
     #[test]
@@ -541,7 +588,7 @@ mod tests {
         let truth = vernier::Pose::planar(1.25, -2.5, 0.3, 1.0);
         let mut frame = grid_frame(&truth);
         frame.header.frame_id.clear();
-        let (out, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        let out = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
         assert!(out.frame_defaulted);
         assert_eq!(out.detections.header.frame_id, DEFAULT_CAMERA_FRAME);
         assert_eq!(out.detections.detections.len(), 1);
@@ -556,7 +603,7 @@ mod tests {
         assert_eq!(out.poses_with_covariance.len(), 1);
         assert_eq!(out.poses_with_covariance[0].1.pose.covariance, m.covariance);
         // Nothing found: the detection array is published empty, with the stamp.
-        let (empty, _) = processor
+        let empty = processor
             .process(&mono8(256, 256, vec![0; 256 * 256]))
             .unwrap_or_else(|e| panic!("{e}"));
         assert!(empty.detections.detections.is_empty());
@@ -569,7 +616,7 @@ mod tests {
         let mut processor = Processor::new(p, 0).unwrap_or_else(|e| panic!("{e}"));
         let truth = vernier::Pose::planar(0.75, 1.5, -0.2, 1.0);
         let raw = grid_frame(&truth);
-        let (expected, _) = processor.process(&raw).unwrap_or_else(|e| panic!("{e}"));
+        let expected = processor.process(&raw).unwrap_or_else(|e| panic!("{e}"));
         let grey = image::GrayImage::from_raw(raw.width, raw.height, raw.data.clone());
         let grey = grey.unwrap_or_else(|| panic!("bad test image"));
         for (format, codec) in [
@@ -584,7 +631,7 @@ mod tests {
                 format: format.into(),
                 data: bytes.into_inner(),
             };
-            let (out, _) = processor
+            let out = processor
                 .process_compressed(&msg)
                 .unwrap_or_else(|e| panic!("{format}: {e}"));
             assert_eq!(out.markers.markers.len(), 1, "{format}");
@@ -651,11 +698,11 @@ mod tests {
             ])
         };
         let mut flat = Processor::new(megarena(false), 0).unwrap_or_else(|e| panic!("{e}"));
-        let (out, _) = flat.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        let out = flat.process(&frame).unwrap_or_else(|e| panic!("{e}"));
         let cov = out.markers.markers[0].covariance.0;
         assert_eq!((cov[21], cov[28]), (1e6, 1e6), "roll and pitch unobserved");
         let mut tilted = Processor::new(megarena(true), 0).unwrap_or_else(|e| panic!("{e}"));
-        let (out, _) = tilted.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        let out = tilted.process(&frame).unwrap_or_else(|e| panic!("{e}"));
         let m = &out.markers.markers[0];
         let o = m.pose.orientation;
         let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
@@ -684,7 +731,7 @@ mod tests {
         let p = params(&[("period", ParamValue::Double(8.0))]);
         let mut processor = Processor::new(p.clone(), 0).unwrap_or_else(|e| panic!("{e}"));
         let frame = grid_frame(&vernier::Pose::planar(0.5, 0.25, 0.1, 1.0));
-        let (before, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        let before = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
         // Doubling the physical period doubles the measured pixel size (the image is the same).
         let q = p
             .with("period", &ParamValue::Double(16.0))
@@ -693,7 +740,7 @@ mod tests {
             .unwrap_or_else(|e| panic!("{e}"));
         processor.update(q, 1).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(processor.generation(), 1);
-        let (after, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        let after = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
         let ratio = after.markers.markers[0].pixel_size / before.markers.markers[0].pixel_size;
         // 2× the period in nm instead of µm: 2e-3 × the metres per pixel.
         assert!((ratio - 2e-3).abs() < 1e-9, "ratio {ratio}");
@@ -704,7 +751,7 @@ mod tests {
             .with("marker_ids", &ParamValue::IntegerArray(vec![4]))
             .unwrap_or_else(|e| panic!("{e}"));
         processor.update(r, 2).unwrap_or_else(|e| panic!("{e}"));
-        let (none, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        let none = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
         assert!(none.markers.markers.is_empty());
         // A quality threshold above 1 is rejected before it reaches the processor.
         assert!(processor
@@ -735,7 +782,7 @@ mod tests {
         assert_eq!(processor.generation(), 1, "not retried on every frame");
         assert_eq!(processor.params().settings.period, None);
         let frame = grid_frame(&vernier::Pose::planar(0.5, 0.25, 0.1, 1.0));
-        let (out, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        let out = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
         assert!((out.markers.markers[0].pixel_size - 1e-6).abs() < 1e-9);
     }
 
@@ -750,7 +797,7 @@ mod tests {
             }
             let mut processor =
                 Processor::new(params(&values), 0).unwrap_or_else(|e| panic!("{e}"));
-            let (out, _) = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+            let out = processor.process(&frame).unwrap_or_else(|e| panic!("{e}"));
             out.markers.markers[0].clone()
         };
         let (own, calibrated) = (measure(None), measure(Some(1.001e-6)));
@@ -859,7 +906,7 @@ mod tests {
             .map(|v| (v * 255.0).round() as u8)
             .collect();
         let mut processor = Processor::new(p, 0).unwrap_or_else(|e| panic!("{e}"));
-        let (out, _) = processor
+        let out = processor
             .process(&mono8(512, 512, bytes))
             .unwrap_or_else(|e| panic!("{e}"));
         let mut ids: Vec<u64> = out.markers.markers.iter().map(|m| m.id).collect();

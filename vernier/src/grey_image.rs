@@ -6,6 +6,7 @@
 //! Odd sizes are fine.
 
 use crate::error::{Error, Result};
+use crate::image_file::{decode_image_bytes, decode_image_file, DecodeLimits};
 use std::path::Path;
 
 /// Whether the dots are brighter or darker than the background.
@@ -167,6 +168,22 @@ impl GreyImage {
         format: PixelFormat,
         data: &[u8],
     ) -> Result<Self> {
+        let mut image = GreyImage::unfilled();
+        image.assign_raw(width, height, step, format, data)?;
+        Ok(image)
+    }
+
+    /// [`GreyImage::from_raw`] into this image, reusing its pixel buffer: a stream of frames
+    /// of one size allocates (and page-faults in) its 4 bytes per pixel once, not per frame.
+    /// On error the image is left as it was.
+    pub fn assign_raw(
+        &mut self,
+        width: usize,
+        height: usize,
+        step: usize,
+        format: PixelFormat,
+        data: &[u8],
+    ) -> Result<()> {
         check_size(width, height)?;
         let bpp = format.bytes_per_pixel();
         let row_bytes = width
@@ -187,24 +204,68 @@ impl GreyImage {
             )));
         }
         let rows = (width, height, step);
-        let pixels = match format {
-            PixelFormat::Mono8 => convert_rows::<_, 1>(data, rows, |p| unit(p[0])),
-            PixelFormat::Mono16 { big_endian } => convert_rows::<_, 2>(data, rows, |b| {
+        let out = &mut self.pixels;
+        match format {
+            PixelFormat::Mono8 => convert_rows::<_, 1>(data, rows, out, |p| unit(p[0])),
+            PixelFormat::Mono16 { big_endian } => convert_rows::<_, 2>(data, rows, out, |b| {
                 unit(match big_endian {
                     true => u16::from_be_bytes([b[0], b[1]]),
                     false => u16::from_le_bytes([b[0], b[1]]),
                 })
             }),
-            PixelFormat::Rgb8 => convert_rows::<_, 3>(data, rows, |p| luma(p[0], p[1], p[2])),
-            PixelFormat::Rgba8 => convert_rows::<_, 4>(data, rows, |p| luma(p[0], p[1], p[2])),
-            PixelFormat::Bgr8 => convert_rows::<_, 3>(data, rows, |p| luma(p[2], p[1], p[0])),
-            PixelFormat::Bgra8 => convert_rows::<_, 4>(data, rows, |p| luma(p[2], p[1], p[0])),
+            PixelFormat::Rgb8 => convert_rows::<_, 3>(data, rows, out, |p| luma(p[0], p[1], p[2])),
+            PixelFormat::Rgba8 => convert_rows::<_, 4>(data, rows, out, |p| luma(p[0], p[1], p[2])),
+            PixelFormat::Bgr8 => convert_rows::<_, 3>(data, rows, out, |p| luma(p[2], p[1], p[0])),
+            PixelFormat::Bgra8 => convert_rows::<_, 4>(data, rows, out, |p| luma(p[2], p[1], p[0])),
+        }
+        self.width = width;
+        self.height = height;
+        Ok(())
+    }
+
+    /// An image of no pixels, to be filled ([`GreyImage::assign_raw`]); never handed out.
+    pub(crate) fn unfilled() -> Self {
+        GreyImage {
+            width: 0,
+            height: 0,
+            pixels: Vec::new(),
+        }
+    }
+
+    /// Fills the image from a decoder's packed samples of colour type `colour` (16-bit
+    /// samples in native byte order, as `image`'s decoders write them), reusing the pixel
+    /// buffer. `false`, the image untouched, for a colour type with no integer samples.
+    pub(crate) fn assign_decoded(
+        &mut self,
+        (width, height): (usize, usize),
+        colour: image::ColorType,
+        samples: &[u8],
+    ) -> Result<bool> {
+        use image::ColorType as C;
+        check_size(width, height)?;
+        let out = &mut self.pixels;
+        let grey16 = |b: &[u8]| unit(u16::from_ne_bytes([b[0], b[1]]));
+        let luma16 = |b: &[u8]| {
+            let s = |k: usize| u16::from_ne_bytes([b[2 * k], b[2 * k + 1]]);
+            luma(s(0), s(1), s(2))
         };
-        Ok(GreyImage {
-            width,
-            height,
-            pixels,
-        })
+        let rgb8 = |p: &[u8]| luma(p[0], p[1], p[2]);
+        match colour {
+            C::L8 => convert_rows::<_, 1>(samples, (width, height, width), out, |p| unit(p[0])),
+            C::La8 => {
+                convert_rows::<_, 2>(samples, (width, height, 2 * width), out, |p| unit(p[0]))
+            }
+            C::Rgb8 => convert_rows::<_, 3>(samples, (width, height, 3 * width), out, rgb8),
+            C::Rgba8 => convert_rows::<_, 4>(samples, (width, height, 4 * width), out, rgb8),
+            C::L16 => convert_rows::<_, 2>(samples, (width, height, 2 * width), out, grey16),
+            C::La16 => convert_rows::<_, 4>(samples, (width, height, 4 * width), out, grey16),
+            C::Rgb16 => convert_rows::<_, 6>(samples, (width, height, 6 * width), out, luma16),
+            C::Rgba16 => convert_rows::<_, 8>(samples, (width, height, 8 * width), out, luma16),
+            _ => return Ok(false),
+        }
+        self.width = width;
+        self.height = height;
+        Ok(true)
     }
 
     /// From 8-bit grey samples, row-major.
@@ -554,168 +615,6 @@ impl GreyImage {
 const WINDOW_MAX_PIXELS: u64 =
     (crate::limits::MAX_WINDOW_SIZE as u64) * (crate::limits::MAX_WINDOW_SIZE as u64);
 
-/// Resource limits of an image decode.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct DecodeLimits {
-    /// Largest image accepted, pixels (`width × height`); default
-    /// [`limits::DEFAULT_MAX_PIXELS`](crate::limits::DEFAULT_MAX_PIXELS) (100 MP). The
-    /// decoder's allocation is bounded by 8 bytes per pixel of it.
-    pub max_pixels: u64,
-}
-
-impl Default for DecodeLimits {
-    fn default() -> Self {
-        DecodeLimits {
-            max_pixels: crate::limits::DEFAULT_MAX_PIXELS,
-        }
-    }
-}
-
-impl DecodeLimits {
-    /// Limits of at most `max_pixels` pixels.
-    pub fn with_max_pixels(max_pixels: u64) -> Self {
-        DecodeLimits { max_pixels }
-    }
-
-    fn max_alloc(&self) -> u64 {
-        self.max_pixels
-            .saturating_mul(crate::limits::MAX_DECODED_BYTES_PER_PIXEL)
-            .saturating_add(crate::limits::FILE_SIZE_SLACK)
-    }
-}
-
-/// Reads and decodes an image file (format from its content, else its extension) within
-/// `limits`: the file size, the header's dimensions (before any pixel is decoded, so a
-/// decompression bomb costs nothing) and the decoder's allocations are bounded, and truncated
-/// or corrupted files are rejected rather than decoded in part: a JPEG must end with its
-/// end-of-image marker, a PNG must pass every chunk CRC and end with `IEND`.
-pub fn decode_image_file(path: &Path, limits: &DecodeLimits) -> Result<image::DynamicImage> {
-    let read_err = |reason: String| Error::ImageRead {
-        path: path.to_path_buf(),
-        reason,
-    };
-    let size = std::fs::metadata(path)
-        .map_err(|e| read_err(e.to_string()))?
-        .len();
-    if size > limits.max_alloc() {
-        return Err(read_err(format!(
-            "the file is {size} bytes, more than any image within --max-pixels / \
-             max_image_pixels {} could need",
-            crate::limits::megapixels(limits.max_pixels)
-        )));
-    }
-    let bytes = std::fs::read(path).map_err(|e| read_err(e.to_string()))?;
-    decode_image_bytes(&bytes, path, limits)
-}
-
-fn decode_image_bytes(
-    bytes: &[u8],
-    path: &Path,
-    limits: &DecodeLimits,
-) -> Result<image::DynamicImage> {
-    let read_err = |reason: String| Error::ImageRead {
-        path: path.to_path_buf(),
-        reason,
-    };
-    let format = image::guess_format(bytes)
-        .or_else(|_| image::ImageFormat::from_path(path))
-        .map_err(|e| read_err(e.to_string()))?;
-    check_integrity(bytes, format).map_err(read_err)?;
-    let reader = |format| image::ImageReader::with_format(std::io::Cursor::new(bytes), format);
-    let (w, h) = match png_dimensions(bytes) {
-        // The PNG decoder refuses a huge header with a bare "Memory limit exceeded".
-        Some(dims) if format == image::ImageFormat::Png => dims,
-        _ => {
-            let mut probe = reader(format);
-            let mut probe_limits = image::Limits::default();
-            probe_limits.max_alloc = Some(limits.max_alloc());
-            probe.limits(probe_limits);
-            probe.into_dimensions().map_err(|e| match e {
-                image::ImageError::Limits(_) => read_err(format!(
-                    "the image header asks for more memory than --max-pixels / \
-                     max_image_pixels {} allows",
-                    crate::limits::megapixels(limits.max_pixels)
-                )),
-                other => read_err(other.to_string()),
-            })?
-        }
-    };
-    crate::limits::check_image_pixels(w as u64, h as u64, limits.max_pixels)
-        .map_err(|e| read_err(e.to_string().trim_start_matches("invalid image: ").into()))?;
-    let mut reader = reader(format);
-    let mut decode_limits = image::Limits::default();
-    decode_limits.max_alloc = Some(limits.max_alloc());
-    let side = u32::try_from(limits.max_pixels).unwrap_or(u32::MAX);
-    decode_limits.max_image_width = Some(side);
-    decode_limits.max_image_height = Some(side);
-    reader.limits(decode_limits);
-    reader.decode().map_err(|e| read_err(e.to_string()))
-}
-
-/// Structural checks that decoders skip: a partial file must not decode as a partial image.
-fn check_integrity(bytes: &[u8], format: image::ImageFormat) -> std::result::Result<(), String> {
-    match format {
-        image::ImageFormat::Jpeg => {
-            let end = bytes.iter().rposition(|&b| b != 0).map_or(0, |i| i + 1);
-            if end < 4 || bytes[end - 2..end] != [0xFF, 0xD9] {
-                return Err(
-                    "truncated JPEG: the file does not end with the end-of-image marker (FF D9)"
-                        .into(),
-                );
-            }
-            Ok(())
-        }
-        image::ImageFormat::Png => check_png_chunks(bytes),
-        _ => Ok(()),
-    }
-}
-
-/// Width and height of a PNG file's `IHDR` chunk (the first chunk).
-fn png_dimensions(bytes: &[u8]) -> Option<(u32, u32)> {
-    let ihdr = bytes.get(8..24)?;
-    if &ihdr[4..8] != b"IHDR" {
-        return None;
-    }
-    let be = |b: &[u8]| u32::from_be_bytes([b[0], b[1], b[2], b[3]]);
-    Some((be(&ihdr[8..12]), be(&ihdr[12..16])))
-}
-
-/// Walks the chunks of a PNG file: every CRC must match and the last chunk must be `IEND`.
-fn check_png_chunks(bytes: &[u8]) -> std::result::Result<(), String> {
-    let mut at = 8usize;
-    loop {
-        let Some(header) = bytes.get(at..at + 8) else {
-            return Err(format!(
-                "truncated PNG: the file ends at byte {} without an IEND chunk",
-                bytes.len()
-            ));
-        };
-        let length = u32::from_be_bytes([header[0], header[1], header[2], header[3]]) as usize;
-        let kind = &header[4..8];
-        let name = String::from_utf8_lossy(kind).into_owned();
-        let Some(end) = (at + 8)
-            .checked_add(length)
-            .filter(|&end| end.saturating_add(4) <= bytes.len())
-        else {
-            return Err(format!(
-                "truncated PNG: chunk `{name}` at byte {at} ({length} bytes) runs past the end \
-                 of the file"
-            ));
-        };
-        let stored = &bytes[end..end + 4];
-        let crc = crc32fast::hash(&bytes[at + 4..end]);
-        if crc.to_be_bytes() != stored {
-            return Err(format!(
-                "corrupted PNG: chunk `{name}` at byte {at} fails its CRC"
-            ));
-        }
-        if kind == b"IEND" {
-            return Ok(());
-        }
-        at = end + 4;
-    }
-}
-
 fn check_size(width: usize, height: usize) -> Result<()> {
     if width == 0 || height == 0 {
         return Err(Error::InvalidImage(format!(
@@ -760,27 +659,32 @@ fn luma<T: Sample>(r: T, g: T, b: T) -> f32 {
 /// The grey values of a packed `width × height` image of `N` samples per pixel: grey (and
 /// alpha) for `N < 3`, R, G, B (and alpha) otherwise.
 fn packed_grey<T: Sample, const N: usize>(data: &[T], width: usize, height: usize) -> Vec<f32> {
-    convert_rows::<T, N>(data, (width, height, width * N), |p| match N {
+    let mut out = Vec::new();
+    convert_rows::<T, N>(data, (width, height, width * N), &mut out, |p| match N {
         1 | 2 => unit(p[0]),
         _ => luma(p[0], p[1], p[2]),
-    })
+    });
+    out
 }
 
 /// Converts the first `height` rows of `data`, each `step` samples apart and holding `width`
 /// pixels of `N` samples, with `pixel` (row-major, `width × height` values): the one
 /// conversion loop of every integer input layout. Rows missing from a short `data` stay 0
-/// (the callers check the length first). Two threads (bands of rows) did not make a 5 MP
-/// frame faster end to end (7.6 ms per tracked window-only frame either way), so the loop
-/// stays on one; the 20 MB of `f32` it writes per frame, rather than its arithmetic, is the
-/// likely limit.
+/// (the callers check the length first); `out` is cleared first, its capacity kept. Two
+/// threads (bands of rows) did not make a 5 MP frame faster end to end (7.6 ms per tracked
+/// window-only frame either way), so the loop stays on one; the 20 MB of `f32` it writes per
+/// frame, rather than its arithmetic, is the likely limit.
 fn convert_rows<T, const N: usize>(
     data: &[T],
     (width, height, step): (usize, usize, usize),
+    out: &mut Vec<f32>,
     pixel: impl Fn(&[T]) -> f32,
-) -> Vec<f32> {
+) {
     let total = width * height;
-    // Written once, not zeroed first: the zeroing was a second pass over the 20 MB.
-    let mut out = Vec::with_capacity(total);
+    // Written once, not zeroed first: the zeroing was a second pass over the 20 MB. The
+    // buffer's pages stay mapped from the frame before.
+    out.clear();
+    out.reserve(total);
     if width > 0 && step > 0 {
         for row in data.chunks(step).take(height) {
             let start = out.len();
@@ -789,7 +693,6 @@ fn convert_rows<T, const N: usize>(
         }
     }
     out.resize(total, 0.0);
-    out
 }
 
 /// Outputs of at least this many pixels are binned on two threads.

@@ -238,7 +238,7 @@ impl Replay {
         let time_ms = start.elapsed().as_secs_f64() * 1e3;
         let failure = match &result {
             Err(e) => Some(e.clone()),
-            Ok((out, _)) => out.detect_error.clone(),
+            Ok(out) => out.detect_error.clone(),
         };
         if let Some(e) = &failure {
             eprintln!("vernier: {topic} message {}: skipped: {e}", self.frame);
@@ -248,7 +248,7 @@ impl Replay {
             Sink::Table(table) => {
                 let stamp = msg.as_ref().ok().map(|m| m.header.stamp.as_secs_f64());
                 let markers = match (&result, failure) {
-                    (Ok((out, _)), None) => Ok(out.raw.clone()),
+                    (Ok(out), None) => Ok(out.raw.clone()),
                     (_, Some(e)) => Err(e),
                     (Err(e), None) => Err(e.clone()),
                 };
@@ -261,7 +261,7 @@ impl Replay {
                 // A bad message still gets an (empty) array, as the node publishes on loss.
                 let empty;
                 let out = match &result {
-                    Ok((out, _)) => out,
+                    Ok(out) => out,
                     Err(_) => {
                         empty = FrameOutput::default();
                         &empty

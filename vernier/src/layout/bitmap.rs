@@ -90,7 +90,7 @@ pub(crate) fn binarize_image(image: &image::DynamicImage) -> Result<(usize, usiz
 /// Opens and decodes an image file (format guessed from its content), within the default
 /// decode limits (100 MP, truncated files rejected).
 pub(crate) fn read_image(path: &Path) -> Result<image::DynamicImage> {
-    crate::grey_image::decode_image_file(path, &crate::grey_image::DecodeLimits::default())
+    crate::image_file::decode_image_file(path, &crate::image_file::DecodeLimits::default())
 }
 
 /// Arbitrary binary image on the half-period grid: `n_rows × n_cols` cells of side `P/2` (both ≡ 1
