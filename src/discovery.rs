@@ -5,8 +5,8 @@
 //!   discover on every interface; `LOCALHOST` uses the loopback interface only (multicast
 //!   joined and sent on it, only `127.0.0.1` advertised), so that peers on other hosts neither
 //!   find the node nor are found; `OFF` is refused (the node will not start), because rustdds
-//!   cannot switch automatic discovery off, and a node that ignored it would be found by
-//!   others;
+//!   has no setting to turn automatic discovery off, and a node that ignored it would be found
+//!   by others;
 //! * `ROS_LOCALHOST_ONLY=1` (before Jazzy): as `LOCALHOST`; it wins over
 //!   `ROS_AUTOMATIC_DISCOVERY_RANGE`, as in ROS 2's middlewares;
 //! * `ROS_STATIC_PEERS` (Jazzy): refused with a warning and otherwise ignored (rustdds has no
@@ -81,8 +81,8 @@ impl Discovery {
                 }
                 Some("OFF") => {
                     return Err("ROS_AUTOMATIC_DISCOVERY_RANGE=OFF is not supported: this \
-                                node's DDS (rustdds) cannot turn automatic discovery off; \
-                                use LOCALHOST, or unset it"
+                                node's DDS (rustdds) has no setting to turn automatic \
+                                discovery off; use LOCALHOST, or unset it"
                         .to_string())
                 }
                 Some(other) => {

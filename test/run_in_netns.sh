@@ -14,11 +14,9 @@ cd "$root"
 bash scripts/setup_test_tools.sh
 # VERNIER_ROS_PROFILE=test reuses what `cargo test` built (CI); default: release.
 profile="${VERNIER_ROS_PROFILE:-release}"
-if [ "${VERNIER_ROS_FROM_INSTALL:-}" = 1 ]; then
-    cargo build --profile "$profile" -p vernier_ros --example render_test_frames
-else
-    cargo build --profile "$profile" -p vernier_ros --bin detector --example render_test_frames
-fi
+node=(--bin detector)
+[ "${VERNIER_ROS_FROM_INSTALL:-}" = 1 ] && node=()
+cargo build --profile "$profile" -p vernier_ros "${node[@]}" --example render_test_frames
 case "$profile" in dev | test) out=debug ;; *) out="$profile" ;; esac
 # Wherever cargo builds ($CARGO_TARGET_DIR, a config's build.target-dir, or ./target).
 target_dir="$(cargo metadata --format-version 1 --no-deps --locked |
