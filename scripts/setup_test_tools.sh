@@ -5,7 +5,12 @@
 #   - rosbags : writes and reads rosbag2 MCAP files for the `vernier bag` round trip;
 #   - pillow  : encodes the PNG and JPEG frames of the compressed-input interop check;
 #   - cyclonedds : an independent DDS implementation (Eclipse Cyclone DDS, bundled C library)
-#               talking to the ROS 2 node in test/test_interop.py and test/bench_node.py.
+#               talking to the ROS 2 node in test/test_interop.py and test/bench_node.py;
+#   - colcon-core, colcon-package-selection, colcon-ros, colcon-ros-cargo (with colcon-cargo):
+#               `colcon build --packages-select` of the node without a ROS installation
+#               (test/run_colcon.sh);
+# and, from crates.io into the same `.venv/bin`, not ~/.cargo:
+#   - cargo-ament-build: the `cargo ament-build` that colcon-ros-cargo calls.
 # Versions are pinned so that CI and developers validate against the same readers.
 # Idempotent: re-running only installs what is missing. Run it before `cargo test`.
 set -euo pipefail
@@ -21,5 +26,14 @@ fi
     "gdstk==1.0.2" \
     "rosbags==0.11.9" \
     "cyclonedds==11.0.1" \
-    "pillow==11.0.0"
+    "pillow==11.0.0" \
+    "colcon-core==0.21.3" \
+    "colcon-ros==0.5.0" \
+    "colcon-cargo==0.2.0" \
+    "colcon-ros-cargo==0.2.0" \
+    "colcon-package-selection==0.2.10"
+cargo_ament_build=0.1.11
+if ! grep -qs "cargo-ament-build $cargo_ament_build " "$venv/.crates.toml"; then
+    cargo install --quiet --locked --root "$venv" --version "$cargo_ament_build" cargo-ament-build
+fi
 "$venv/bin/python" -c "import gdstk, rosbags, cyclonedds.domain; print('test tools ready: gdstk', gdstk.__version__)"

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The whole test suite: formatting, lints, every workspace test (unit, synthetic round trips,
 # real images from $VERNIER_DATA_DIR, default ../shared/data, independent readers and DDS peer
-# from the ignored .venv/), the docs' commands, links and API docs (scripts/check_docs.sh) and
-# the ROS 2 node's interoperability test against Cyclone DDS.
+# from the ignored .venv/), the docs' commands, links and API docs (scripts/check_docs.sh), the
+# ROS 2 node's interoperability test against Cyclone DDS and its colcon build.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -36,6 +36,11 @@ echo "== docs: commands, links, rustdoc"
 bash scripts/check_docs.sh
 echo "== ROS 2 node against an independent DDS (Cyclone DDS)"
 VERNIER_ROS_PROFILE=test bash test/run_interop.sh
+# colcon build of the node as a ROS user does it (colcon and cargo-ament-build from .venv/),
+# its install tree, and the installed node against Cyclone DDS; reuses the test build's
+# dependencies.
+echo "== colcon build, install tree, installed node (test/run_colcon.sh)"
+VERNIER_ROS_PROFILE=test bash test/run_colcon.sh
 # The optional rerun feature is never in the default build (a large SDK); it must still
 # compile and pass the lints.
 echo "== cargo check/clippy --features rerun (vernier-cli)"

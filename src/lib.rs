@@ -6,8 +6,10 @@
 //! schema, message structs, `--ros-args`, one frame → output messages) is the
 //! `vernier-interface` crate, shared with `vernier bag` and re-exported here as [`messages`],
 //! [`params`], [`processing`] and [`ros_args`]. This crate is the DDS glue:
-//! [`param_services`] (`ros2 param`), [`diagnostics`] and [`node`] (DDS wiring).
+//! [`param_services`] (`ros2 param`), [`diagnostics`], [`discovery`] (the ROS discovery
+//! environment variables) and [`node`] (DDS wiring).
 pub mod diagnostics;
+pub mod discovery;
 #[cfg(test)]
 mod fuzz_tests;
 pub mod node;

@@ -22,6 +22,7 @@
 //! effect on the next frame.
 
 use crate::diagnostics::{Event, Stats, Throttle};
+use crate::discovery::Discovery;
 use crate::messages::{
     Clock, CompressedImage, Detection3DArray, DiagnosticArray, Image, MarkerPoseArray, PoseStamped,
     PoseWithCovarianceStamped, RosType, TfMessage, Time,
@@ -33,8 +34,8 @@ use crate::ros_args::{fully_qualified, RosArgs};
 use log::{error, info, warn};
 use ros2_client::qos::{Durability, History, Reliability, WhenFull};
 use ros2_client::{
-    Context, ContextOptions, MessageTypeName, Name, Node, NodeName, NodeOptions, ParameterValue,
-    Publisher, QosProfile, Subscription,
+    Context, MessageTypeName, Name, Node, NodeName, NodeOptions, ParameterValue, Publisher,
+    QosProfile, Subscription,
 };
 use ros2_client::{NodeLoggingHandle, RosoutRaw};
 use std::collections::btree_map::Entry;
@@ -67,7 +68,9 @@ Publishes:  ~/detections (vision_msgs/Detection3DArray), ~/markers
             ~/debug_image (only while subscribed)
 Parameters: see params/detector.yaml; also use_sim_time and
             qos_overrides./<image topic>.subscription.reliability|history|depth|durability.
-            The DDS domain is ROS_DOMAIN_ID (default 0).";
+            The DDS domain is ROS_DOMAIN_ID (default 0); ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+            or ROS_LOCALHOST_ONLY=1 keeps discovery on the loopback interface (OFF and
+            ROS_STATIC_PEERS are not supported).";
 
 /// State shared by the threads.
 struct Shared {
@@ -181,7 +184,8 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
             .map_err(|_| format!("ROS_DOMAIN_ID `{text}` is not a domain number"))?,
         _ => 0,
     };
-    let context = Context::with_options(ContextOptions::new().domain_id(domain_id))
+    let discovery = Discovery::from_env(|name| std::env::var(name).ok())?;
+    let context = Context::from_domain_participant(discovery.participant(domain_id)?)
         .map_err(|e| format!("cannot start DDS: {e:?}"))?;
     let mut options = NodeOptions::new()
         .enable_rosout(true)
@@ -210,6 +214,7 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
     RosoutLogger::attach(node.logging_handle(), &node_name);
     info!("node {fq_name} on DDS domain {domain_id}");
     // Logged once /rosout is attached, so that ROS tools see them too.
+    discovery.log();
     for ignored in &startup.ignored {
         warn!("parameter override ignored: {ignored}");
     }

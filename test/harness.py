@@ -20,11 +20,31 @@ from cyclonedds.util import duration
 import ros2_types as t
 
 ROOT = Path(__file__).resolve().parent.parent
-# Set by test/run_interop.sh and test/run_bench.sh after building.
+# Set by test/run_in_netns.sh after building: cargo's output folder of the profile.
 BIN_DIR = Path(os.environ.get("VERNIER_ROS_BIN_DIR", ROOT / "target" / "release"))
-NODE_BIN = BIN_DIR / "detector"
-RENDER_BIN = BIN_DIR / "render_test_frames"
-PARAMS_FILE = ROOT / "params" / "detector.yaml"
+# The frame renderer is a cargo example (test/render_test_frames.rs), never installed.
+RENDER_BIN = BIN_DIR / "examples" / "render_test_frames"
+
+
+def installed_package():
+    """The prefix of vernier_ros found the way `ros2 run` finds it: the ament index marker
+    `share/ament_index/resource_index/packages/vernier_ros` under an AMENT_PREFIX_PATH entry
+    (put there by sourcing a colcon workspace's install/setup.sh)."""
+    for prefix in filter(None, os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)):
+        if (Path(prefix) / "share/ament_index/resource_index/packages/vernier_ros").is_file():
+            return Path(prefix)
+    raise SystemExit("vernier_ros is not on AMENT_PREFIX_PATH (source install/setup.sh)")
+
+
+# VERNIER_ROS_FROM_INSTALL=1 (test/run_colcon.sh, after sourcing install/setup.sh): the node
+# and its parameter file from the colcon install tree; otherwise cargo's build and the source.
+if os.environ.get("VERNIER_ROS_FROM_INSTALL") == "1":
+    _prefix = installed_package()
+    NODE_BIN = _prefix / "lib" / "vernier_ros" / "detector"
+    PARAMS_FILE = _prefix / "share" / "vernier_ros" / "params" / "detector.yaml"
+else:
+    NODE_BIN = BIN_DIR / "detector"
+    PARAMS_FILE = ROOT / "params" / "detector.yaml"
 
 # ROS 2 speaks XCDR1 (plain CDR); ask Cyclone for it explicitly.
 XCDR1 = Policy.DataRepresentation(use_cdrv0_representation=True)
@@ -74,7 +94,7 @@ def services_matched(pairs, timeout):
 
 def render_frames(out_dir, count, size=1024, period=10.0, pixel_size=0.8, seed=1,
                   kind="periodic", extra=()):
-    """Renders `count` frames with the project's renderer (src/bin/render_test_frames.rs;
+    """Renders `count` frames with the project's renderer (test/render_test_frames.rs;
     `kind` periodic: one grid, ID 0; hpcode: two HP codes, see its header for `extra` flags
     such as `--ids a,b` and `--code-size W`); returns (truth dict, list of bytes)."""
     subprocess.run(
@@ -88,9 +108,11 @@ def render_frames(out_dir, count, size=1024, period=10.0, pixel_size=0.8, seed=1
     return truth, frames
 
 
-def start_node(domain_id, extra_args, log_path):
-    """Starts the detector node with the project's parameter file plus `extra_args`."""
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id))
+def start_node(domain_id, extra_args, log_path, env=None):
+    """Starts the detector node with the project's parameter file plus `extra_args`; `env`
+    adds to (or, with None values, removes from) the environment."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), **(env or {}))
+    env = {k: v for k, v in env.items() if v is not None}
     log = open(log_path, "w")
     return subprocess.Popen(
         [str(NODE_BIN), "--ros-args", "--params-file", str(PARAMS_FILE), *extra_args],

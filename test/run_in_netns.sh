@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
-# Shared set-up of the DDS tests (test/run_interop.sh, test/run_bench.sh): installs the test
-# tools into the ignored `.venv/`, builds the node and the frame renderer, then runs the given
-# Python script (with its arguments) inside a private network namespace (loopback only,
-# multicast routed on it) so that DDS discovery never leaves the machine.
-# Needs root (or user namespaces) for `unshare --net`.
+# Shared set-up of the DDS tests (test/run_interop.sh, test/run_bench.sh, test/run_colcon.sh):
+# installs the test tools into the ignored `.venv/`, builds the node and the frame renderer (a
+# cargo example; only the renderer with VERNIER_ROS_FROM_INSTALL=1, where the node comes from a
+# sourced colcon install tree), then runs the given Python script (with its arguments) inside a
+# private network namespace (loopback only, multicast routed on it) so that DDS discovery never
+# leaves the machine. Needs root (or user namespaces) for `unshare --net`.
 #
 #   bash test/run_in_netns.sh SCRIPT.py [ARGS...]
 set -euo pipefail
@@ -13,7 +14,9 @@ cd "$root"
 bash scripts/setup_test_tools.sh
 # VERNIER_ROS_PROFILE=test reuses what `cargo test` built (CI); default: release.
 profile="${VERNIER_ROS_PROFILE:-release}"
-cargo build --profile "$profile" -p vernier_ros --bins
+node=(--bin detector)
+[ "${VERNIER_ROS_FROM_INSTALL:-}" = 1 ] && node=()
+cargo build --profile "$profile" -p vernier_ros "${node[@]}" --example render_test_frames
 case "$profile" in dev | test) out=debug ;; *) out="$profile" ;; esac
 # Wherever cargo builds ($CARGO_TARGET_DIR, a config's build.target-dir, or ./target).
 target_dir="$(cargo metadata --format-version 1 --no-deps --locked |

@@ -37,9 +37,15 @@ reliable subscription through `qos_overrides./image/compressed.subscription.reli
   * /diagnostics is stamped with /clock time, turns WARN on a burst of bad frames and
     recovers to OK once the burst has left its 10 s window;
   * /rosout carries the node's warnings (the ignored override, the empty frame_id);
-and last with a fourth node started with RMW_IMPLEMENTATION=rmw_cyclonedds_cpp, called the way
+then with a fourth node started with RMW_IMPLEMENTATION=rmw_cyclonedds_cpp, called the way
 `ros2 param` on that middleware calls it (Cyclone's request header, test/cyclone_params.py):
-get, a rejected and an accepted set, list and describe.
+get, a rejected and an accepted set, list and describe;
+and last the discovery settings (ROS_AUTOMATIC_DISCOVERY_RANGE, ROS_LOCALHOST_ONLY,
+ROS_STATIC_PEERS) with a peer in a second network namespace (test/discovery_check.py).
+
+`--installed` (test/run_colcon.sh, after sourcing a colcon workspace's install/setup.sh): only
+the first node's pose checks, with the node and parameter file of the install tree
+(`lib/vernier_ros/detector --ros-args --params-file share/vernier_ros/params/detector.yaml`).
 
 Run it with test/run_interop.sh (builds, isolates the network, installs cyclonedds).
 Prints `N passed, N failed` and exits non-zero on any failure."""
@@ -55,6 +61,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import discovery_check  # noqa: E402
 import harness  # noqa: E402
 import param_mapping_check  # noqa: E402
 import ros2_types as t  # noqa: E402
@@ -117,13 +124,17 @@ def main():
     peer = harness.RosPeer(domain)
     peer.domain = domain
     peer.backlog = {}
+    installed = "--installed" in sys.argv[1:]
+    print(f"node: {harness.NODE_BIN} --ros-args --params-file {harness.PARAMS_FILE}")
     try:
         if not peer.wait_for_node():
             raise SystemExit(f"node not discovered; log:\n{(work / 'node.log').read_text()}")
-        run_checks(peer, truth, frames, node)
+        run_checks(peer, truth, frames, node, poses_only=installed)
     finally:
         harness.stop_node(node)
         print_log_tail(work / "node.log")
+    if installed:
+        return summary()
     # The HP code node on its own domain: nothing of the first node's discovery lingers.
     run_hpcode_session(domain % 200 + 1, work / "hpcode")
     # Sim time, compressed input, QoS overrides, standard messages, /rosout.
@@ -136,6 +147,11 @@ def main():
               (domain + 3) % 200 + 1, cyclone_log, PERIOD_UM))
     if cyclone_log.exists():
         print_log_tail(cyclone_log, lines=5)
+    discovery_check.run((domain + 4) % 200 + 1, work / "discovery", check)
+    return summary()
+
+
+def summary():
     failed = sum(1 for _, e in results if e is not None)
     print(f"{len(results) - failed} passed, {failed} failed")
     return 1 if failed else 0
@@ -147,7 +163,7 @@ def print_log_tail(path, lines=20):
     print("\n".join(log.splitlines()[-lines:]))
 
 
-def run_checks(peer, truth, frames, node):
+def run_checks(peer, truth, frames, node, poses_only=False):
     def send(frame_bytes, sec, **kw):
         return lambda: peer.image_writer.write(harness.mono8(SIZE, SIZE, frame_bytes, sec, **kw))
 
@@ -178,6 +194,8 @@ def run_checks(peer, truth, frames, node):
             assert m.covariance[14] >= 1e5  # z unobserved
 
         check(f"pose of frame {i} within {TOL_PX} px", poses_match)
+    if poses_only:
+        return
 
     def tf_matches():
         # The last frame's transform camera → vernier_marker_0.
