@@ -216,7 +216,7 @@ fn a_field_fit_whose_steps_shrink_by_pairs_is_kept() {
 /// Noise-free HP code scenes with a hair (and dust) across the dot field, 3.4e-3 to 5.2e-3 px
 /// off while the whole-field fit kept the soft, blurred edges of the hair and the dust: the
 /// biweight rejected their cores only, and the edges, not point-symmetric about the dots they
-/// cross, pulled the planes. The edges now go with the cores (`phase/field_fit.rs`,
+/// cross, pulled the planes. The edges now go with the cores (`phase/field_fit/`,
 /// `outlier_extents`): 1.9e-5 to 3.4e-4 px.
 const OUTLIER_EDGE_SEEDS: [u64; 6] = [52831, 60795, 59673, 52787, 58639, 63787];
 
@@ -256,7 +256,7 @@ fn worst_stamp_error(seeds: &[u64]) -> f64 {
 /// (HP 53263, 51085, 54693) or whose flat fit the curvature threw off, so that the window's
 /// planes stood (stamps 54000, 57014: 0.36 and 0.18 px). The fit now carries the tilt in its
 /// phase model, from the coarse step's measure of it (the HP dots' homography, the stamp
-/// frame's outline), and measures what is left pass by pass (`phase/field_fit.rs`, `Warp`):
+/// frame's outline), and measures what is left pass by pass (`phase/field_fit/pixels.rs`, `Warp`):
 /// 3.7e-5 to 2.3e-3 px.
 const PHASE_TILT_SEEDS: [u64; 5] = [53263, 51085, 54693, 54000, 57014];
 
@@ -413,7 +413,7 @@ fn jpeg_markers_are_measured_near_their_file_s_quantisation_model() {
 /// fit stopped at order-5 harmonics: the dots' finer detail, left in the residual, leaked
 /// into the planes through the missing dots and put them 10.5 and 14.9 times their
 /// Cramér–Rao bound off (2.8e-3 and 1.1e-3 px). Orders up to 8 are now modelled where the
-/// pixel grid sees them unfolded (`MAX_ORDER` in `phase/field_fit.rs`).
+/// pixel grid sees them unfolded (`MAX_ORDER` in `phase/field_fit/mod.rs`).
 const SHARP_LARGE_DOT_SEEDS: [u64; 2] = [54189, 54387];
 
 #[test]
