@@ -503,112 +503,177 @@ fn fit_field(
     };
     // The field's box, binned while the period allows (docs/design.md#field-fit).
     let field = FieldBox::new(image, &start, mask)?;
+    let sub = SubImage::new(image, &field, binning_factor(&start))?;
+    let start_sub = start.map(|p| sub.plane_in_sub(&p));
+    let goal = sub.goal(&start_sub, rival, tilt);
+    let warm = match warm {
+        Some(w) => Some(w.in_sub_frame(sub.factor, sub.offset)?),
+        None => None,
+    };
+    let fit = fit_dot_field_dispatch(&sub.image, start_sub, mask, goal, warm.as_ref())?;
+    sub.fit_in_image(fit, window, mask)
+}
+
+/// The binning factor of a field fitted from `start`: 2 while the binned period stays at
+/// least [`MIN_BINNED_PERIOD`], else 1.
+fn binning_factor(start: &[PhasePlane; 2]) -> usize {
     let period = start
         .iter()
         .map(|p| p.pixel_period())
         .fold(f64::INFINITY, f64::min);
-    let factor = if period / 2.0 >= MIN_BINNED_PERIOD {
+    if period / 2.0 >= MIN_BINNED_PERIOD {
         2
     } else {
         1
-    };
-    let f = factor as f64;
-    // Bins start on even pixels of the image, not at the field's edge, and lie symmetrically
-    // about the image's centre ([`crate::decimate::centre_offset`]): a half or quarter turn
-    // or a flip maps bins onto bins, and the fit of the turned image sees the same binned
-    // pixels (bins placed from the field's box would move the result within its noise).
-    let aligned = |range: &std::ops::Range<usize>| {
-        let start = range.start / factor * factor;
-        start..start + (range.end - start) / factor * factor
-    };
-    let (cols, rows) = (aligned(&field.cols), aligned(&field.rows));
-    let (left, top) = (cols.start, rows.start);
-    // The rounding to the input's levels, per input pixel.
-    let rounding =
-        quantisation_variance_in(image.pixels(), image.width(), rows.clone(), cols.clone());
-    // `centre`: where the sub-image's pixel (0, 0) sits from `(left, top)`, input pixels.
-    let (sub, rounding, sampling, centre) = if factor == 2 {
-        // A box average would fold the harmonics above its Nyquist frequency onto the
-        // modelled ones, exactly so along the pixel axes: a bias locked to the pixel grid
-        // (docs/design.md#anti-aliased-binning).
-        use crate::decimate::{centre_offset, decimate_2x2, noise_gain};
-        let gains = [noise_gain(image.width()), noise_gain(image.height())];
-        let sampling = Sampling {
-            unaliased: true,
-            noise_colour: (0.5 / gains[0]) * (0.5 / gains[1]),
+    }
+}
+
+/// The image a field is fitted on: the field's box, binned 2×2 (`factor` 2) or as it is.
+struct SubImage {
+    image: GreyImage,
+    /// The binning factor `f`, 1 or 2.
+    factor: usize,
+    /// The input's rounding variance, per pixel of `sub`.
+    rounding: f64,
+    sampling: Sampling,
+    /// Image-frame `x, y` of `sub`'s frame origin: `x = f·x_s + offset` for sub-image frame
+    /// coordinate `x_s = i − w_s div 2` and binning factor `f`.
+    offset: [f64; 2],
+}
+
+impl SubImage {
+    /// The sub-image of `field`'s box in `image`, binned by `factor` (1 or 2).
+    fn new(image: &GreyImage, field: &FieldBox, factor: usize) -> Option<SubImage> {
+        let f = factor as f64;
+        // Bins start on even pixels of the image, not at the field's edge, and lie symmetrically
+        // about the image's centre ([`crate::decimate::centre_offset`]): a half or quarter turn
+        // or a flip maps bins onto bins, and the fit of the turned image sees the same binned
+        // pixels (bins placed from the field's box would move the result within its noise).
+        let aligned = |range: &std::ops::Range<usize>| {
+            let start = range.start / factor * factor;
+            start..start + (range.end - start) / factor * factor
         };
-        let centre = [centre_offset(image.width()), centre_offset(image.height())];
-        let sub = decimate_2x2(image, cols, rows)?;
-        (sub, rounding * gains[0] * gains[1], sampling, centre)
-    } else {
-        let sub = image.crop(left, top, cols.len(), rows.len()).ok()?;
-        (sub, rounding, Sampling::DIRECT, [0.0; 2])
-    };
-    // Image-frame x of sub-image pixel i (frame x_s = i − w_s div 2): x = f·x_s + o.
-    let (icx, icy) = image.center();
-    let offset = [
-        f * (sub.width() / 2) as f64 + left as f64 + centre[0] - icx as f64,
-        f * (sub.height() / 2) as f64 + top as f64 + centre[1] - icy as f64,
-    ];
-    let to_sub = |p: &PhasePlane| PhasePlane {
-        a: f * p.a,
-        b: f * p.b,
-        c: p.c + p.a * offset[0] + p.b * offset[1],
-    };
-    let start_sub = start.map(|p| to_sub(&p));
-    // White noise measured apart from the model (lattice second differences): where the
-    // model stops short of the dots' detail (sharp dots many pixels wide), the residual is
-    // static model error, which does not scatter the result from frame to frame.
-    // On a steeply tilted field, read only where the lattice still matches the planes (near
-    // the tilt's centre): the dots' edges elsewhere would read as noise and hide the tilt.
-    let lattice_tilt = tilt.map(|t| LatticeTilt {
-        centre: t.centre,
-        perspective: [t.perspective.x, t.perspective.y],
-    });
-    let white = with_plan(sub.height(), sub.width(), |plan| {
-        tilted_white_noise_variance(sub.pixels(), &start_sub, plan, lattice_tilt)
-    })
-    .map(|v| v.max(rounding));
-    // The rival's point in the (binned) sub-image frame.
-    let rival = rival.map(|r| Rival {
-        at: ((r.at.0 - offset[0]) / f, (r.at.1 - offset[1]) / f),
-        ..r
-    });
-    let goal = Goal {
-        white,
-        rival,
-        tilt_centre: tilt.map(|t| t.centre),
-        prior: tilt.map_or(Vector2::zeros(), |t| t.perspective),
-        sampling,
-    };
-    let warm = match warm {
-        Some(w) => Some(w.in_sub_frame(factor, offset)?),
-        None => None,
-    };
-    let mut fit = fit_dot_field_dispatch(&sub, start_sub, mask, goal, warm.as_ref())?;
-    let to_image = |p: PhasePlane| {
+        let (cols, rows) = (aligned(&field.cols), aligned(&field.rows));
+        let (left, top) = (cols.start, rows.start);
+        // The rounding to the input's levels, per input pixel.
+        let rounding =
+            quantisation_variance_in(image.pixels(), image.width(), rows.clone(), cols.clone());
+        // `centre`: where the sub-image's pixel (0, 0) sits from `(left, top)`, input pixels.
+        let (sub, rounding, sampling, centre) = if factor == 2 {
+            // A box average would fold the harmonics above its Nyquist frequency onto the
+            // modelled ones, exactly so along the pixel axes: a bias locked to the pixel grid
+            // (docs/design.md#anti-aliased-binning).
+            use crate::decimate::{centre_offset, decimate_2x2, noise_gain};
+            let gains = [noise_gain(image.width()), noise_gain(image.height())];
+            let sampling = Sampling {
+                unaliased: true,
+                noise_colour: (0.5 / gains[0]) * (0.5 / gains[1]),
+            };
+            let centre = [centre_offset(image.width()), centre_offset(image.height())];
+            let sub = decimate_2x2(image, cols, rows)?;
+            (sub, rounding * gains[0] * gains[1], sampling, centre)
+        } else {
+            let sub = image.crop(left, top, cols.len(), rows.len()).ok()?;
+            (sub, rounding, Sampling::DIRECT, [0.0; 2])
+        };
+        // Image-frame x of sub-image pixel i (frame x_s = i − w_s div 2): x = f·x_s + o.
+        let (icx, icy) = image.center();
+        let offset = [
+            f * (sub.width() / 2) as f64 + left as f64 + centre[0] - icx as f64,
+            f * (sub.height() / 2) as f64 + top as f64 + centre[1] - icy as f64,
+        ];
+        Some(SubImage {
+            image: sub,
+            factor,
+            rounding,
+            sampling,
+            offset,
+        })
+    }
+
+    /// Plane `p` of the input image's frame in the sub-image's frame.
+    fn plane_in_sub(&self, p: &PhasePlane) -> PhasePlane {
+        let (f, offset) = (self.factor as f64, self.offset);
+        PhasePlane {
+            a: f * p.a,
+            b: f * p.b,
+            c: p.c + p.a * offset[0] + p.b * offset[1],
+        }
+    }
+
+    /// Plane `p` of the sub-image's frame in the input image's frame.
+    fn plane_in_image(&self, p: PhasePlane) -> PhasePlane {
+        let (f, offset) = (self.factor as f64, self.offset);
         let (a, b) = (p.a / f, p.b / f);
         PhasePlane {
             a,
             b,
             c: p.c - a * offset[0] - b * offset[1],
         }
-    };
-    fit.planes = fit.planes.map(to_image);
-    fit.start = window;
-    let (x0, y0, s) = fit.frame;
-    fit.frame = (f * x0 + offset[0], f * y0 + offset[1], f * s);
-    let converged = fit.warm.model.planes.map(to_image);
-    fit.warm.model.planes = converged;
-    fit.warm.correction = [0, 1].map(|l| PhasePlane {
-        a: converged[l].a - window[l].a,
-        b: converged[l].b - window[l].b,
-        c: converged[l].c - window[l].c,
-    });
-    let nodes = mask.centroid_at(&fit.planes)?;
-    fit.warm.frame = (fit.frame.0 - nodes.x, fit.frame.1 - nodes.y, fit.frame.2);
-    fit.warm.factor = factor;
-    Some(fit)
+    }
+
+    /// What the fit from `start_sub` (the sub-image's frame) works against: the white noise
+    /// measured apart from the model, and `rival` moved to the sub-image's frame.
+    fn goal(
+        &self,
+        start_sub: &[PhasePlane; 2],
+        rival: Option<Rival>,
+        tilt: Option<TiltStart>,
+    ) -> Goal {
+        let (f, offset, sub) = (self.factor as f64, self.offset, &self.image);
+        // White noise measured apart from the model (lattice second differences): where the
+        // model stops short of the dots' detail (sharp dots many pixels wide), the residual
+        // is static model error, which does not scatter the result from frame to frame.
+        // On a steeply tilted field, read only where the lattice still matches the planes
+        // (near the tilt's centre): the dots' edges elsewhere would read as noise and hide
+        // the tilt.
+        let lattice_tilt = tilt.map(|t| LatticeTilt {
+            centre: t.centre,
+            perspective: [t.perspective.x, t.perspective.y],
+        });
+        let white = with_plan(sub.height(), sub.width(), |plan| {
+            tilted_white_noise_variance(sub.pixels(), start_sub, plan, lattice_tilt)
+        })
+        .map(|v| v.max(self.rounding));
+        // The rival's point in the (binned) sub-image frame.
+        let rival = rival.map(|r| Rival {
+            at: ((r.at.0 - offset[0]) / f, (r.at.1 - offset[1]) / f),
+            ..r
+        });
+        Goal {
+            white,
+            rival,
+            tilt_centre: tilt.map(|t| t.centre),
+            prior: tilt.map_or(Vector2::zeros(), |t| t.perspective),
+            sampling: self.sampling,
+        }
+    }
+
+    /// `fit`, made on the sub-image from the planes `window` (input image frame), in the input
+    /// image's frame, with what the next frame's tracked fit starts from.
+    fn fit_in_image(
+        &self,
+        mut fit: FieldFit,
+        window: [PhasePlane; 2],
+        mask: &NodeMask,
+    ) -> Option<FieldFit> {
+        let (f, offset) = (self.factor as f64, self.offset);
+        fit.planes = fit.planes.map(|p| self.plane_in_image(p));
+        fit.start = window;
+        let (x0, y0, s) = fit.frame;
+        fit.frame = (f * x0 + offset[0], f * y0 + offset[1], f * s);
+        let converged = fit.warm.model.planes.map(|p| self.plane_in_image(p));
+        fit.warm.model.planes = converged;
+        fit.warm.correction = [0, 1].map(|l| PhasePlane {
+            a: converged[l].a - window[l].a,
+            b: converged[l].b - window[l].b,
+            c: converged[l].c - window[l].c,
+        });
+        let nodes = mask.centroid_at(&fit.planes)?;
+        fit.warm.frame = (fit.frame.0 - nodes.x, fit.frame.1 - nodes.y, fit.frame.2);
+        fit.warm.factor = self.factor;
+        Some(fit)
+    }
 }
 
 /// [`fit_dot_field`] on an image (the field's box, maybe binned), vectorised where the CPU

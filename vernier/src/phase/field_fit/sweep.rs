@@ -215,97 +215,116 @@ pub(super) fn iterate(
     freeze: bool,
     goal: &Goal,
 ) -> Option<Step> {
-    let mut frozen = if freeze {
-        vec![0.0f32; field.rows.len() * field.cols.len()]
-    } else {
-        Vec::new()
-    };
-    let mut frozen_residuals = vec![f32::NAN; frozen.len()];
-    let mut frozen_cells = vec![u32::MAX; frozen.len()];
     // The tilt is probed on the fixed problem of frozen weights, where the fit converges.
     let tilt_centre = goal.tilt_centre.filter(|_| !model.frozen.is_empty());
-    let mut equations = match tilt_centre {
-        Some(_) => Equations::Tilted(NormalEquations::new()),
-        None => Equations::Plain(NormalEquations::new()),
-    };
-    let mut slopes = [0.0f64; 2];
-    let (mut sum_w, mut sum_w2, mut sum_layout, mut pixels) = (0.0, 0.0, 0.0, 0usize);
-    let mut residuals = Vec::new();
-    let mut cells = vec![[0.0f64; 2]; mask.len()];
-    let mut sum_wr2 = 0.0;
-    let (mut sum_wx, mut sum_wy) = (0.0, 0.0);
-    let mut basis = [0.0f64; UNKNOWNS];
+    let mut sums = SweepSums::new(field, mask, freeze, tilt_centre.is_some());
     let mut bank = HarmonicBank::new(&model.harmonics, &model.planes);
     for p in field.pixels(image, &model.planes, mask, &model.cells) {
-        bank.move_to(&p);
+        sums.add(&p, &mut bank, model, tilt_centre);
+    }
+    sums.solve(model, goal, bank)
+}
+
+/// What one sweep accumulates over the field's pixels, before its solve ([`iterate`]).
+struct SweepSums {
+    equations: Equations,
+    /// `Σw`, `Σw²` and `Σw·r²` of the robust weights `w`, and `Σw_L` of the layout's.
+    sum_w: f64,
+    sum_w2: f64,
+    sum_wr2: f64,
+    sum_layout: f64,
+    /// `Σw·X`, `Σw·Y`: the demodulation's centroid.
+    sum_wx: f64,
+    sum_wy: f64,
+    pixels: usize,
+    /// `|r|` of the pixels of at least half weight: the robust scale's sample.
+    residuals: Vec<f64>,
+    /// `(Σ w_L·r², Σ w_L)` per node of the mask.
+    cells: Vec<[f64; 2]>,
+    /// When freezing: each pixel's robust weight, residual and cell ([`Step::frozen`]).
+    frozen: Vec<f32>,
+    frozen_residuals: Vec<f32>,
+    frozen_cells: Vec<u32>,
+}
+
+impl SweepSums {
+    /// Empty sums for a sweep of `field`; `tilted` adds the tilt's columns to the equations.
+    fn new(field: &FieldBox, mask: &NodeMask, freeze: bool, tilted: bool) -> Self {
+        let frozen = if freeze {
+            vec![0.0f32; field.rows.len() * field.cols.len()]
+        } else {
+            Vec::new()
+        };
+        SweepSums {
+            equations: match tilted {
+                true => Equations::Tilted(NormalEquations::new()),
+                false => Equations::Plain(NormalEquations::new()),
+            },
+            sum_w: 0.0,
+            sum_w2: 0.0,
+            sum_wr2: 0.0,
+            sum_layout: 0.0,
+            sum_wx: 0.0,
+            sum_wy: 0.0,
+            pixels: 0,
+            residuals: Vec::new(),
+            cells: vec![[0.0f64; 2]; mask.len()],
+            frozen_residuals: vec![f32::NAN; frozen.len()],
+            frozen_cells: vec![u32::MAX; frozen.len()],
+            frozen,
+        }
+    }
+
+    /// Adds pixel `p`: its residual under `model` (the bank moved to it), its robust weight,
+    /// its demodulation and its row of the normal equations.
+    #[inline(always)]
+    fn add(
+        &mut self,
+        p: &Pixel,
+        bank: &mut HarmonicBank,
+        model: &Model,
+        tilt_centre: Option<[f64; 2]>,
+    ) {
+        bank.move_to(p);
         let (h, h_slope) = bank.evaluate();
-        let gain = model.gain(&p);
+        let gain = model.gain(p);
         let data = p.g - h;
-        let r = p.g - gain * h - model.linear_at(&p);
+        let r = p.g - gain * h - model.linear_at(p);
         let robust = match model.frozen.get(p.index) {
             Some(&w) => w as f64,
             None => model.robust(r),
         };
-        if let Some(slot) = frozen.get_mut(p.index) {
+        if let Some(slot) = self.frozen.get_mut(p.index) {
             *slot = robust as f32;
             if let (Some(q), Some(c)) = (
-                frozen_residuals.get_mut(p.index),
-                frozen_cells.get_mut(p.index),
+                self.frozen_residuals.get_mut(p.index),
+                self.frozen_cells.get_mut(p.index),
             ) {
                 *q = r as f32;
                 *c = p.cell.map_or(u32::MAX, |c| c as u32);
             }
         }
-        pixels += 1;
-        sum_layout += p.layout;
+        self.pixels += 1;
+        self.sum_layout += p.layout;
         if p.w >= 0.5 {
-            residuals.push(r.abs());
+            self.residuals.push(r.abs());
         }
-        if let Some(cell) = p.cell.and_then(|i| cells.get_mut(i)) {
+        if let Some(cell) = p.cell.and_then(|i| self.cells.get_mut(i)) {
             cell[0] += p.layout * r * r;
             cell[1] += p.layout;
         }
         bank.demodulate(p.w * r * robust);
         let w = p.w * robust;
         if w <= 0.0 {
-            continue;
+            return;
         }
-        sum_w += w;
-        sum_wx += w * p.xn;
-        sum_wy += w * p.yn;
-        sum_w2 += w * w;
-        sum_wr2 += w * r * r;
-        let m = &model.linear;
-        basis[0] = 1.0;
-        basis[1] = p.xn;
-        basis[2] = p.yn;
-        let mut fundamentals = [0.0; 2];
-        for l in 0..2 {
-            let (c, sn) = (p.z[l].re, p.z[l].im);
-            basis[3 + 3 * l] = c;
-            basis[4 + 3 * l] = p.xn * c;
-            basis[5 + 3 * l] = p.yn * c;
-            // ∂g/∂φ_l at the current amplitudes, fundamental and harmonics. Tied harmonics
-            // inform the offsets γ_l as well as the slopes; free ones only the slopes (their
-            // phases absorb any common move, `Model::update_harmonics`). X and Y are centred
-            // on the field's weight, so ramp and offset decouple.
-            let amplitude = m[3 + 3 * l] + m[4 + 3 * l] * p.xn + m[5 + 3 * l] * p.yn;
-            fundamentals[l] = -amplitude * sn;
-            slopes[l] = fundamentals[l] + gain * h_slope[l];
-        }
-        // Along the planes' linear phases: through the warp's Jacobian (the identity without
-        // one, which leaves every term as it is to the last bit).
-        let j = &p.jacobian;
-        for m in 0..2 {
-            let d = slopes[0] * j[0][m] + slopes[1] * j[1][m];
-            let fundamental = fundamentals[0] * j[0][m] + fundamentals[1] * j[1][m];
-            basis[LINEAR + 3 * m] = d * p.xn;
-            basis[LINEAR + 3 * m + 1] = d * p.yn;
-            basis[LINEAR + 3 * m + 2] = if model.tied { d } else { fundamental };
-        }
-        basis[9] = p.xn * h;
-        basis[10] = p.yn * h;
-        equations.add(&basis, data, w, || {
+        self.sum_w += w;
+        self.sum_wx += w * p.xn;
+        self.sum_wy += w * p.yn;
+        self.sum_w2 += w * w;
+        self.sum_wr2 += w * r * r;
+        let (basis, slopes) = basis_at(p, model, h, h_slope, gain);
+        self.equations.add(&basis, data, w, || {
             let c = tilt_centre.unwrap_or_default();
             let v = [p.linear[0] - c[0], p.linear[1] - c[1]];
             // ∂g/∂p_k = Σ_l ∂g/∂φ_l · 2π·v_l·v_k/D² (u = v/(1 − p·v), φ_l = 2π·u_l, at the
@@ -321,64 +340,118 @@ pub(super) fn iterate(
             ]
         });
     }
-    if sum_w <= 0.0 || sum_layout <= 0.0 {
-        return None;
+
+    /// Solves the sweep's normal equations: the step, its covariance under the white noise,
+    /// the tilt measured, and the harmonics' corrections from `bank`'s demodulation sums.
+    fn solve(mut self, model: &Model, goal: &Goal, mut bank: HarmonicBank) -> Option<Step> {
+        let (sum_w, sum_w2, sum_wr2) = (self.sum_w, self.sum_w2, self.sum_wr2);
+        if sum_w <= 0.0 || self.sum_layout <= 0.0 {
+            return None;
+        }
+        let (normal, rhs, tilted) = self.equations.finish();
+        let inverse = normal.cholesky()?.inverse();
+        let x = inverse * rhs;
+        let residual_std = robust_sigma(&mut self.residuals);
+        // Weighted least squares under white noise σ²: Cov = σ²·N⁻¹(Σw²bbᵀ)N⁻¹ ≈ σ²·N⁻¹·Σw²/Σw.
+        // The residual's scale: the smaller of the kept pixels' weighted mean square residual
+        // and the robust (median) one. It holds the white noise and the static model error
+        // (dot edges, aliased harmonics, sharp dots' detail beyond the modelled orders), which
+        // does not scatter the result from frame to frame but may bias it. σ² is the white
+        // noise alone: the model-free estimate `white` when smaller, at least the engine's
+        // floor.
+        let misfit_variance = (sum_wr2 / sum_w).min(residual_std * residual_std);
+        // The tilt's significance is judged on the residual's scale, model error included: a
+        // static misfit must not pass for a tilt.
+        let tilt_scale = misfit_variance * sum_w2 / sum_w;
+        let free_harmonics = !model.tied && !model.harmonics.is_empty();
+        let tilt = tilted.and_then(|(n, r)| Tilt::estimate(&n, &r, free_harmonics, tilt_scale));
+        // The part of the residual that the tilt taken explains is no model error once the
+        // planes take the tilt (the weighted squares it removes, a fraction of all).
+        let explained = match tilt {
+            Some(t) if sum_wr2 > 0.0 => t.explained_squares() / sum_wr2,
+            _ => 0.0,
+        };
+        let residual_variance = misfit_variance * (1.0 - explained).clamp(0.0, 1.0);
+        let noise_variance = residual_variance
+            .min(goal.white.unwrap_or(f64::INFINITY))
+            .max(MIN_NOISE_STD * MIN_NOISE_STD);
+        let unit = noise_variance * goal.sampling.noise_colour * sum_w2 / sum_w;
+        let mut covariance = inverse.fixed_view::<6, 6>(LINEAR, LINEAR).into_owned() * unit;
+        if let Some(t) = &tilt {
+            // The planes will move with the tilt taken ([`Tilt::planes_shift`]), and take its
+            // noise with them.
+            covariance += t.planes_covariance() * unit;
+        }
+        let model_error_ratio = (residual_variance / noise_variance).max(1.0).sqrt();
+        let tilt_misfit = tilt.map_or(0.0, |t| t.explained_squares() / sum_w / noise_variance);
+        Some(Step {
+            tilt,
+            tilt_misfit,
+            model_error_ratio,
+            linear: x.fixed_rows::<LINEAR>(0).into_owned(),
+            delta: x.fixed_rows::<6>(LINEAR).into_owned(),
+            harmonics: (bank.sums().into_iter().zip(&model.overlaps))
+                .map(|(d, &overlap)| amplitude_step(2.0 * d / sum_w, overlap))
+                .collect(),
+            covariance,
+            residual_std,
+            inlier_fraction: sum_w / self.sum_layout,
+            pixels: self.pixels,
+            cells: self.cells,
+            frozen: self.frozen,
+            frozen_residuals: self.frozen_residuals,
+            frozen_cells: self.frozen_cells,
+            centroid: [self.sum_wx / sum_w, self.sum_wy / sum_w],
+            amplitude_variance: 2.0 * residual_variance.max(noise_variance) * sum_w2
+                / (sum_w * sum_w),
+        })
     }
-    let (normal, rhs, tilted) = equations.finish();
-    let inverse = normal.cholesky()?.inverse();
-    let x = inverse * rhs;
-    let residual_std = robust_sigma(&mut residuals);
-    // Weighted least squares under white noise σ²: Cov = σ²·N⁻¹(Σw²bbᵀ)N⁻¹ ≈ σ²·N⁻¹·Σw²/Σw.
-    // The residual's scale: the smaller of the kept pixels' weighted mean square residual and
-    // the robust (median) one. It holds the white noise and the static model error (dot
-    // edges, aliased harmonics, sharp dots' detail beyond the modelled orders), which does not
-    // scatter the result from frame to frame but may bias it. σ² is the white noise alone: the
-    // model-free estimate `white` when smaller, at least the engine's floor.
-    let misfit_variance = (sum_wr2 / sum_w).min(residual_std * residual_std);
-    // The tilt's significance is judged on the residual's scale, model error included: a
-    // static misfit must not pass for a tilt.
-    let tilt_scale = misfit_variance * sum_w2 / sum_w;
-    let free_harmonics = !model.tied && !model.harmonics.is_empty();
-    let tilt = tilted.and_then(|(n, r)| Tilt::estimate(&n, &r, free_harmonics, tilt_scale));
-    // The part of the residual that the tilt taken explains is no model error once the
-    // planes take the tilt (the weighted squares it removes, a fraction of all).
-    let explained = match tilt {
-        Some(t) if sum_wr2 > 0.0 => t.explained_squares() / sum_wr2,
-        _ => 0.0,
-    };
-    let residual_variance = misfit_variance * (1.0 - explained).clamp(0.0, 1.0);
-    let noise_variance = residual_variance
-        .min(goal.white.unwrap_or(f64::INFINITY))
-        .max(MIN_NOISE_STD * MIN_NOISE_STD);
-    let unit = noise_variance * goal.sampling.noise_colour * sum_w2 / sum_w;
-    let mut covariance = inverse.fixed_view::<6, 6>(LINEAR, LINEAR).into_owned() * unit;
-    if let Some(t) = &tilt {
-        // The planes will move with the tilt taken ([`Tilt::planes_shift`]), and take its
-        // noise with them.
-        covariance += t.planes_covariance() * unit;
+}
+
+/// The row of the normal equations at pixel `p` (the model's basis functions and its
+/// derivatives along the plane corrections), and `∂g/∂φ_l` per plane; `h`, `h_slope`: the
+/// harmonics' sum and its derivatives there, `gain` their illumination gain.
+#[inline(always)]
+fn basis_at(
+    p: &Pixel,
+    model: &Model,
+    h: f64,
+    h_slope: [f64; 2],
+    gain: f64,
+) -> ([f64; UNKNOWNS], [f64; 2]) {
+    let mut basis = [0.0f64; UNKNOWNS];
+    let mut slopes = [0.0f64; 2];
+    let m = &model.linear;
+    basis[0] = 1.0;
+    basis[1] = p.xn;
+    basis[2] = p.yn;
+    let mut fundamentals = [0.0; 2];
+    for l in 0..2 {
+        let (c, sn) = (p.z[l].re, p.z[l].im);
+        basis[3 + 3 * l] = c;
+        basis[4 + 3 * l] = p.xn * c;
+        basis[5 + 3 * l] = p.yn * c;
+        // ∂g/∂φ_l at the current amplitudes, fundamental and harmonics. Tied harmonics inform
+        // the offsets γ_l as well as the slopes; free ones only the slopes (their phases
+        // absorb any common move, `Model::update_harmonics`). X and Y are centred on the
+        // field's weight, so ramp and offset decouple.
+        let amplitude = m[3 + 3 * l] + m[4 + 3 * l] * p.xn + m[5 + 3 * l] * p.yn;
+        fundamentals[l] = -amplitude * sn;
+        slopes[l] = fundamentals[l] + gain * h_slope[l];
     }
-    let model_error_ratio = (residual_variance / noise_variance).max(1.0).sqrt();
-    let tilt_misfit = tilt.map_or(0.0, |t| t.explained_squares() / sum_w / noise_variance);
-    Some(Step {
-        tilt,
-        tilt_misfit,
-        model_error_ratio,
-        linear: x.fixed_rows::<LINEAR>(0).into_owned(),
-        delta: x.fixed_rows::<6>(LINEAR).into_owned(),
-        harmonics: (bank.sums().into_iter().zip(&model.overlaps))
-            .map(|(d, &overlap)| amplitude_step(2.0 * d / sum_w, overlap))
-            .collect(),
-        covariance,
-        residual_std,
-        inlier_fraction: sum_w / sum_layout,
-        pixels,
-        cells,
-        frozen,
-        frozen_residuals,
-        frozen_cells,
-        centroid: [sum_wx / sum_w, sum_wy / sum_w],
-        amplitude_variance: 2.0 * residual_variance.max(noise_variance) * sum_w2 / (sum_w * sum_w),
-    })
+    // Along the planes' linear phases: through the warp's Jacobian (the identity without one,
+    // which leaves every term as it is to the last bit).
+    let j = &p.jacobian;
+    for m in 0..2 {
+        let d = slopes[0] * j[0][m] + slopes[1] * j[1][m];
+        let fundamental = fundamentals[0] * j[0][m] + fundamentals[1] * j[1][m];
+        basis[LINEAR + 3 * m] = d * p.xn;
+        basis[LINEAR + 3 * m + 1] = d * p.yn;
+        basis[LINEAR + 3 * m + 2] = if model.tied { d } else { fundamental };
+    }
+    basis[9] = p.xn * h;
+    basis[10] = p.yn * h;
+    (basis, slopes)
 }
 
 /// Robust weight of each cell from its RMS residual `ρ` against the median `m` of the cells
