@@ -86,10 +86,25 @@ pub(super) fn fit_pass(
             correct_plane(plane, d, field.frame);
         }
     }
+    let fit = finished_fit(model, &step, &field, start, converged, run.iterations);
+    Some((fit, step.tilt_misfit))
+}
+
+/// The fit of a pass that converged on `model` (its planes moved to where the tilt leaves
+/// them at the centre) with last sweep `step`, from `start`, after `iterations` sweeps;
+/// `converged`: the planes the sweeps converged to, where the next frame's fit starts.
+fn finished_fit(
+    model: Model,
+    step: &Step,
+    field: &FieldBox,
+    start: [PhasePlane; 2],
+    converged: [PhasePlane; 2],
+    iterations: usize,
+) -> FieldFit {
     let (perspective, tilt_weight) = step
         .tilt
         .map_or((None, 0.0), |t| (Some(t.perspective), t.weight));
-    let fit = FieldFit {
+    FieldFit {
         perspective,
         tilt_weight,
         start,
@@ -99,7 +114,7 @@ pub(super) fn fit_pass(
         inlier_fraction: step.inlier_fraction,
         spoiled_cells: spoiled_cells(&model.cells, &step.cells),
         pixels: step.pixels,
-        iterations: run.iterations,
+        iterations,
         harmonics: model.harmonics.len(),
         harmonics_tied: model.tied,
         covariance: step.covariance,
@@ -122,8 +137,7 @@ pub(super) fn fit_pass(
             residual_std: step.residual_std,
             inlier_fraction: step.inlier_fraction,
         }),
-    };
-    Some((fit, step.tilt_misfit))
+    }
 }
 
 /// What a fit works against: the white noise measured apart from the model (intensity
@@ -269,18 +283,8 @@ pub(super) fn converge(
             && (warm_first || (iteration > ROBUST_ITERATIONS && steps.previous <= SETTLED_STEP));
         let mut step = iterate(image, field, mask, model, freeze, goal).ok_or(Stall::Failed)?;
         let freeze = freeze && !(warm_first && run.warm.is_some_and(|w| !w.still_fits(&step)));
-        let mut largest = 0.0f64;
-        let mut moved = [0.0; 2];
-        for (l, p) in model.planes.iter_mut().enumerate() {
-            let d = [
-                step.delta[3 * l],
-                step.delta[3 * l + 1],
-                step.delta[3 * l + 2],
-            ];
-            correct_plane(p, d, field.frame);
-            moved[l] = d[0].abs() + d[1].abs() + d[2].abs();
-            largest = largest.max(moved[l]);
-        }
+        let moved = move_planes(&mut model.planes, &step, field.frame);
+        let largest = moved[0].max(moved[1]);
         run.add_shift(moved).ok_or(Stall::Failed)?;
         log::trace!(
             "whole-field fit iteration {iteration} ({} harmonics): step {largest:.1e} rad, \
@@ -334,17 +338,7 @@ pub(super) fn converge(
             _ => f64::INFINITY,
         };
         steps.push(largest);
-        let sigma = [0, 1]
-            .map(|l| {
-                (0..3)
-                    .map(|k| step.covariance[(3 * l + k, 3 * l + k)])
-                    .sum::<f64>()
-            })
-            .into_iter()
-            .fold(f64::INFINITY, f64::min)
-            .sqrt();
-        let tail_tolerance = (CONVERGED_TAIL * CONVERGED).max(CONVERGED_TAIL_OF_SIGMA * sigma);
-        let converged = largest < CONVERGED || tail < tail_tolerance;
+        let converged = largest < CONVERGED || tail < tail_tolerance(&step.covariance);
         if run.frozen_at.is_some() && converged {
             return Ok(step);
         }
@@ -356,6 +350,38 @@ pub(super) fn converge(
         }
     }
     Err(Stall::Failed)
+}
+
+/// Moves each plane by its correction in `step` (normalised coordinates of `frame`); how far
+/// each moved, `|α| + |β| + |γ|`, radians.
+fn move_planes(planes: &mut [PhasePlane; 2], step: &Step, frame: (f64, f64, f64)) -> [f64; 2] {
+    let mut moved = [0.0; 2];
+    for (l, p) in planes.iter_mut().enumerate() {
+        let d = [
+            step.delta[3 * l],
+            step.delta[3 * l + 1],
+            step.delta[3 * l + 2],
+        ];
+        correct_plane(p, d, frame);
+        moved[l] = d[0].abs() + d[1].abs() + d[2].abs();
+    }
+    moved
+}
+
+/// The steps still to come below which a fit has converged: [`CONVERGED_TAIL_OF_SIGMA`] of
+/// the planes' σ (the smaller plane's, summed over its three terms, from `covariance`), at
+/// least [`CONVERGED_TAIL`] of [`CONVERGED`].
+fn tail_tolerance(covariance: &Matrix6<f64>) -> f64 {
+    let sigma = [0, 1]
+        .map(|l| {
+            (0..3)
+                .map(|k| covariance[(3 * l + k, 3 * l + k)])
+                .sum::<f64>()
+        })
+        .into_iter()
+        .fold(f64::INFINITY, f64::min)
+        .sqrt();
+    (CONVERGED_TAIL * CONVERGED).max(CONVERGED_TAIL_OF_SIGMA * sigma)
 }
 
 /// The largest plane steps of a stage's last two iterations, radians (infinite before there

@@ -250,6 +250,50 @@ pub(super) struct FieldPixels<'a> {
 }
 
 impl FieldPixels<'_> {
+    /// Starts the current row at its span's first column (phases computed afresh); `false`
+    /// when the row has no span.
+    #[inline(always)]
+    fn start_row(&mut self) -> bool {
+        let f = self.field;
+        let span = f.span(self.row);
+        if span.is_empty() {
+            return false;
+        }
+        self.fresh_row = false;
+        self.last = None;
+        self.col = span.start;
+        self.row_end = span.end;
+        let y = self.row as f64 - f.center.1;
+        let x = self.col as f64 - f.center.0;
+        match &f.warp {
+            None => {
+                self.z = self.planes.map(|p| Complex64::from_polar(1.0, p.at(x, y)));
+                self.half = self
+                    .planes
+                    .map(|p| Complex64::from_polar(1.0, 0.5 * p.at(x, y)));
+            }
+            Some(warp) => self.set_exact(warp, x, y),
+        }
+        true
+    }
+
+    /// Moves one column along the row: the phases by their steps, and a warped field's steps
+    /// by their chirps.
+    #[inline(always)]
+    fn next_column(&mut self) {
+        let (z, half) = (self.z, self.half);
+        self.col += 1;
+        self.z = [z[0] * self.step[0], z[1] * self.step[1]];
+        self.half = [half[0] * self.half_step[0], half[1] * self.half_step[1]];
+        if self.field.warp.is_some() {
+            self.step = [self.step[0] * self.chirp[0], self.step[1] * self.chirp[1]];
+            self.half_step = [
+                self.half_step[0] * self.half_chirp[0],
+                self.half_step[1] * self.half_chirp[1],
+            ];
+        }
+    }
+
     /// Sets the phases of a warped field exactly at image-frame `(x, y)` (the current column),
     /// with their step to the next column and its turn per column, from the phases at the next
     /// two columns; leaves them as they are where the warp does not reach those columns.
@@ -289,27 +333,9 @@ impl Iterator for FieldPixels<'_> {
             if self.row >= f.rows.end {
                 return None;
             }
-            if self.fresh_row {
-                let span = f.span(self.row);
-                if span.is_empty() {
-                    self.row += 1;
-                    continue;
-                }
-                self.fresh_row = false;
-                self.last = None;
-                self.col = span.start;
-                self.row_end = span.end;
-                let y = self.row as f64 - f.center.1;
-                let x = self.col as f64 - f.center.0;
-                match &f.warp {
-                    None => {
-                        self.z = self.planes.map(|p| Complex64::from_polar(1.0, p.at(x, y)));
-                        self.half = self
-                            .planes
-                            .map(|p| Complex64::from_polar(1.0, 0.5 * p.at(x, y)));
-                    }
-                    Some(warp) => self.set_exact(warp, x, y),
-                }
+            if self.fresh_row && !self.start_row() {
+                self.row += 1;
+                continue;
             }
             if let Some(warp) = &f.warp {
                 if self.col >= self.exact_at + WARP_EXACT_COLUMNS {
@@ -327,16 +353,7 @@ impl Iterator for FieldPixels<'_> {
             let x = col as f64 - f.center.0;
             let y = row as f64 - f.center.1;
             let (z, half, step) = (self.z, self.half, self.step);
-            self.col += 1;
-            self.z = [z[0] * self.step[0], z[1] * self.step[1]];
-            self.half = [half[0] * self.half_step[0], half[1] * self.half_step[1]];
-            if f.warp.is_some() {
-                self.step = [self.step[0] * self.chirp[0], self.step[1] * self.chirp[1]];
-                self.half_step = [
-                    self.half_step[0] * self.half_chirp[0],
-                    self.half_step[1] * self.half_chirp[1],
-                ];
-            }
+            self.next_column();
             let index = (row - f.rows.start) * f.cols.len() + (col - f.cols.start);
             let clear = f.clearance.get(index).copied().unwrap_or(0.0) as f64;
             if clear <= 0.0 {
