@@ -577,54 +577,10 @@ impl Measure<'_> {
             );
             Ok(None)
         };
-        // Period steps along the marker axes as the finders see them.
-        let steps = |leg: Vector2<f64>| leg.normalize() * 2.0 * triple.module_px;
-        let precheck = marker_id::grid_precheck(
-            image,
-            triple.polarity,
-            coarse,
-            steps(triple.right - triple.corner),
-            steps(triple.bottom - triple.corner),
-            MIN_PRECHECK,
-        );
-        if precheck < MIN_PRECHECK {
-            return reject(&format!("no dot grid around the centre ({precheck:.2})"));
-        }
-        let size = self.window_size(triple);
-        let mut first =
-            self.analyze_window(image, triple, coarse, size, self.apodize(triple, size))?;
-        if first.is_none() && self.params.window_size.is_none() {
-            // Too few periods inside the marker's dot field (small markers, dust over it):
-            // the whole marker, apodised, has about twice as many.
-            let width = auto_window_width(triple);
-            let wide = 2 * crate::phase::fft_size::at_most((width / 2.0).ceil() as usize)
-                .max(MIN_WINDOW / 2);
-            let hann = self.params.apodize.unwrap_or(true);
-            first = self.analyze_window(image, triple, coarse, wide, hann)?;
-        }
-        let Some(mut found) = first else {
-            return reject("no grid matching the finders in the window");
+        let found = match self.marker_window(image, triple)? {
+            Ok(found) => found,
+            Err(why) => return reject(&why),
         };
-        if self.params.pose_formula == PoseFormula::Symmetric {
-            // Second pass on the window the measured centre and width call for, when the
-            // finders' estimate chose another: the result then depends on the fine geometry
-            // only, not on the coarse one (stable from frame to frame, exactly covariant under
-            // image rotations and flips).
-            let fine = found.2.dots;
-            let module = (fine.step_x.norm() + fine.step_y.norm()) / 4.0;
-            let size2 = self.params.window_size.unwrap_or_else(|| {
-                let width = found.2.code_size as f64 * module;
-                auto_window_size(width, module, found.2.alpha(false))
-            });
-            if window_center(fine.center) != found.0 || size2 != size {
-                let hann = self.apodize(triple, size2);
-                if let Some(second) =
-                    self.analyze_window(image, triple, fine.center, size2, hann)?
-                {
-                    found = second;
-                }
-            }
-        }
         let (center, analysis, grid) = found;
         let size = analysis.size.1;
         let window_center = Vector2::new(center.0 as f64, center.1 as f64);
@@ -640,23 +596,9 @@ impl Measure<'_> {
             dots,
             dots_std,
         };
-        let view = ReadingView::raw(image);
-        let read = match self.read_marker(image, &view, &input) {
+        let read = match self.read_marker_or_sharpened(image, &input) {
             Ok(read) => read,
-            // Blur beyond a quarter period merges a dot's level with its neighbours' spill:
-            // read again with the detail at the module's scale restored. Only there: on a
-            // sharp marker an undecided dot is an occluder's or a defect's, which sharpening
-            // would decide.
-            Err(why) => {
-                let sharp = ReadingView::sharpened_if_blurred(image, triple.polarity, &input.dots);
-                match sharp.and_then(|view| self.read_marker(image, &view, &input).ok()) {
-                    Some(read) => {
-                        log::debug!("HP code ID {} read sharpened", read.reading.id);
-                        read
-                    }
-                    None => return reject(&why),
-                }
-            }
+            Err(why) => return reject(&why),
         };
         let MarkerRead {
             reading,
@@ -667,50 +609,8 @@ impl Measure<'_> {
         } = read;
         let (icx, icy) = image.center();
         let image_center = Vector2::new(icx as f64, icy as f64);
-        let at = grid.dots.center - image_center;
-        let refined = if self.params.field_fit {
-            let rival = Rival {
-                phase_std: analysis.phase_std,
-                at: (at.x, at.y),
-            };
-            let previous = previous
-                .filter(|m| m.id == reading.id && m.mirrored == reading.mirrored)
-                .and_then(|m| m.field.as_ref());
-            fine::refine_on_field(image, &grid, reading.id, rival, previous)
-                .filter(|(_, fit)| fit.beats(&rival))
-        } else {
-            None
-        };
-        let (grid, field) = match refined {
-            Some((refined, fit)) => {
-                let tilt = fit.perspective.unwrap_or_default();
-                log::debug!(
-                    "marker {}: field fit over {} px, {} harmonics, {} iterations, {:.1} % inliers, \
-                         residual σ {:.2e}, orientation σ {:.2e} rad, perspective ({:.2e}, \
-                         {:.2e}) per period taken at {:.3}",
-                    reading.id,
-                    fit.pixels,
-                    fit.harmonics,
-                    fit.iterations,
-                    100.0 * fit.inlier_fraction,
-                    fit.residual_std,
-                    fit.mean_direction_std(),
-                    tilt.x,
-                    tilt.y,
-                    fit.tilt_weight
-                );
-                (refined, Some(fit))
-            }
-            None => {
-                if self.params.field_fit {
-                    log::debug!(
-                        "marker {}: no whole-field fit or a less precise one, window planes kept",
-                        reading.id
-                    );
-                }
-                (grid, None)
-            }
-        };
+        let previous = previous.filter(|m| m.id == reading.id && m.mirrored == reading.mirrored);
+        let (grid, field) = self.field_fit(image, grid, &analysis, reading.id, previous);
         let (phase_std, yaw_std) = match &field {
             Some(fit) => {
                 let c = grid.dots.center - image_center;
@@ -746,6 +646,154 @@ impl Measure<'_> {
             phase_std,
             yaw_std,
         }))
+    }
+
+    /// The window of the marker of `triple` and its planes and grid: on the finders' window
+    /// (the whole marker, apodised, when that one has too few periods), then on the window the
+    /// measured centre and width call for. The inner `Err` says why there is no marker.
+    fn marker_window(
+        &mut self,
+        image: &GreyImage,
+        triple: &FinderTriple,
+    ) -> Result<std::result::Result<WindowResult, String>> {
+        let coarse = triple.center();
+        // Period steps along the marker axes as the finders see them.
+        let steps = |leg: Vector2<f64>| leg.normalize() * 2.0 * triple.module_px;
+        let precheck = marker_id::grid_precheck(
+            image,
+            triple.polarity,
+            coarse,
+            steps(triple.right - triple.corner),
+            steps(triple.bottom - triple.corner),
+            MIN_PRECHECK,
+        );
+        if precheck < MIN_PRECHECK {
+            return Ok(Err(format!(
+                "no dot grid around the centre ({precheck:.2})"
+            )));
+        }
+        let size = self.window_size(triple);
+        let mut first =
+            self.analyze_window(image, triple, coarse, size, self.apodize(triple, size))?;
+        if first.is_none() && self.params.window_size.is_none() {
+            // Too few periods inside the marker's dot field (small markers, dust over it):
+            // the whole marker, apodised, has about twice as many.
+            let width = auto_window_width(triple);
+            let wide = 2 * crate::phase::fft_size::at_most((width / 2.0).ceil() as usize)
+                .max(MIN_WINDOW / 2);
+            let hann = self.params.apodize.unwrap_or(true);
+            first = self.analyze_window(image, triple, coarse, wide, hann)?;
+        }
+        let Some(mut found) = first else {
+            return Ok(Err("no grid matching the finders in the window".into()));
+        };
+        if self.params.pose_formula == PoseFormula::Symmetric {
+            // Second pass on the window the measured centre and width call for, when the
+            // finders' estimate chose another: the result then depends on the fine geometry
+            // only, not on the coarse one (stable from frame to frame, exactly covariant under
+            // image rotations and flips).
+            let fine = found.2.dots;
+            let module = (fine.step_x.norm() + fine.step_y.norm()) / 4.0;
+            let size2 = self.params.window_size.unwrap_or_else(|| {
+                let width = found.2.code_size as f64 * module;
+                auto_window_size(width, module, found.2.alpha(false))
+            });
+            if window_center(fine.center) != found.0 || size2 != size {
+                let hann = self.apodize(triple, size2);
+                if let Some(second) =
+                    self.analyze_window(image, triple, fine.center, size2, hann)?
+                {
+                    found = second;
+                }
+            }
+        }
+        Ok(Ok(found))
+    }
+
+    /// [`Measure::read_marker`] on the raw image, and again on the image sharpened at the
+    /// module's scale when the marker is blurred and the first reading failed. `Err` says why
+    /// the first reading failed.
+    fn read_marker_or_sharpened(
+        &self,
+        image: &GreyImage,
+        input: &ReadInput,
+    ) -> std::result::Result<MarkerRead, String> {
+        let view = ReadingView::raw(image);
+        match self.read_marker(image, &view, input) {
+            Ok(read) => Ok(read),
+            // Blur beyond a quarter period merges a dot's level with its neighbours' spill:
+            // read again with the detail at the module's scale restored. Only there: on a
+            // sharp marker an undecided dot is an occluder's or a defect's, which sharpening
+            // would decide.
+            Err(why) => {
+                let sharp =
+                    ReadingView::sharpened_if_blurred(image, input.triple.polarity, &input.dots);
+                match sharp.and_then(|view| self.read_marker(image, &view, input).ok()) {
+                    Some(read) => {
+                        log::debug!("HP code ID {} read sharpened", read.reading.id);
+                        Ok(read)
+                    }
+                    None => Err(why),
+                }
+            }
+        }
+    }
+
+    /// The whole-field fit of marker `id` located by `grid` (window planes `analysis`), when
+    /// enabled and more precise than the window: the refined grid and the fit, else `grid` as
+    /// it is. `previous`: the marker in the last frame (tracking), whose fit this one starts
+    /// from.
+    fn field_fit(
+        &self,
+        image: &GreyImage,
+        grid: fine::MarkerGrid,
+        analysis: &PhaseAnalysis,
+        id: u64,
+        previous: Option<&HpCodeMarker>,
+    ) -> (fine::MarkerGrid, Option<FieldFit>) {
+        let (icx, icy) = image.center();
+        let at = grid.dots.center - Vector2::new(icx as f64, icy as f64);
+        let refined = if self.params.field_fit {
+            let rival = Rival {
+                phase_std: analysis.phase_std,
+                at: (at.x, at.y),
+            };
+            let previous = previous.and_then(|m| m.field.as_ref());
+            fine::refine_on_field(image, &grid, id, rival, previous)
+                .filter(|(_, fit)| fit.beats(&rival))
+        } else {
+            None
+        };
+        match refined {
+            Some((refined, fit)) => {
+                let tilt = fit.perspective.unwrap_or_default();
+                log::debug!(
+                    "marker {}: field fit over {} px, {} harmonics, {} iterations, {:.1} % inliers, \
+                         residual σ {:.2e}, orientation σ {:.2e} rad, perspective ({:.2e}, \
+                         {:.2e}) per period taken at {:.3}",
+                    id,
+                    fit.pixels,
+                    fit.harmonics,
+                    fit.iterations,
+                    100.0 * fit.inlier_fraction,
+                    fit.residual_std,
+                    fit.mean_direction_std(),
+                    tilt.x,
+                    tilt.y,
+                    fit.tilt_weight
+                );
+                (refined, Some(fit))
+            }
+            None => {
+                if self.params.field_fit {
+                    log::debug!(
+                        "marker {}: no whole-field fit or a less precise one, window planes kept",
+                        id
+                    );
+                }
+                (grid, None)
+            }
+        }
     }
 
     /// Reads the ID of the marker whose dots `input` locates, and checks that it is one: its
