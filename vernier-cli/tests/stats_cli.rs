@@ -289,6 +289,27 @@ fn several_tables_need_common_markers_and_no_against() {
     let failed = common::run(&["stats", &paths[0], s(&dir.join("other_id.csv"))]);
     let stderr = String::from_utf8_lossy(&failed.stderr);
     assert!(!failed.status.success() && stderr.contains("no marker ID is in every table"));
+    // Tables without image names match by frame only; an opposite sign convention is named.
+    let motion = |n: u64, sign: f64| {
+        let t = n as f64;
+        (n, 0, t.sin(), t.cos(), sign * 1e-3 * (t * t).sin())
+    };
+    let table = |sign: f64| -> Vec<(u64, u64, f64, f64, f64)> {
+        (0..60).map(|n| motion(n, sign)).collect()
+    };
+    write_table(&dir.join("plus.csv"), &table(1.0));
+    write_table(&dir.join("minus.csv"), &table(-1.0));
+    let (plus, minus) = (dir.join("plus.csv"), dir.join("minus.csv"));
+    let failed = common::run(&["stats", s(&plus), s(&minus)]);
+    let stderr = String::from_utf8_lossy(&failed.stderr);
+    assert!(
+        !failed.status.success() && stderr.contains("--match frame"),
+        "{stderr}"
+    );
+    let mut command = vernier();
+    command.args(["stats", s(&plus), s(&minus), "--match", "frame"]);
+    let table = String::from_utf8_lossy(&stdout_of_success(&mut command)).into_owned();
+    assert!(table.contains("opposite sign conventions"), "{table}");
 }
 
 /// `vernier detect` of `Image96`–`Image125` with `extra` options, as a CSV table in `path`.

@@ -88,8 +88,12 @@ fn image_number(name: &str) -> Option<u64> {
 type Poses = BTreeMap<Key, (u64, [f64; 3])>;
 
 /// Every series' poses per marker ID, and how many rows were left out because their marker
-/// appears twice in one frame.
-fn poses_by_marker(inputs: &[Input], by: MatchBy) -> (Vec<BTreeMap<u64, Poses>>, usize) {
+/// appears twice in one frame. Fails when two frames of a table share an image name (a bag
+/// topic, a table without `source`): they need `--match frame`.
+fn poses_by_marker(
+    inputs: &[Input],
+    by: MatchBy,
+) -> Result<(Vec<BTreeMap<u64, Poses>>, usize), String> {
     let posed = |r: &&PoseRow| r.id.is_some() && r.x.is_some() && r.y.is_some();
     let numbered = inputs
         .iter()
@@ -112,7 +116,16 @@ fn poses_by_marker(inputs: &[Input], by: MatchBy) -> (Vec<BTreeMap<u64, Poses>>,
                 };
                 let k = key(r);
                 let poses = markers.entry(id).or_default();
-                if poses.insert(k.clone(), (r.frame, [x, y, alpha])).is_some() {
+                if let Some((frame, _)) = poses.insert(k.clone(), (r.frame, [x, y, alpha])) {
+                    if frame != r.frame {
+                        return Err(format!(
+                            "{}: frames {frame} and {} have the same image name `{}`: match \
+                             them with --match frame",
+                            input.path.display(),
+                            r.frame,
+                            stem(&r.source)
+                        ));
+                    }
                     twice.insert((id, k));
                 }
             }
@@ -122,10 +135,10 @@ fn poses_by_marker(inputs: &[Input], by: MatchBy) -> (Vec<BTreeMap<u64, Poses>>,
                     poses.remove(&k);
                 }
             }
-            markers
+            Ok(markers)
         })
-        .collect();
-    (all, left_out)
+        .collect::<Result<_, String>>()?;
+    Ok((all, left_out))
 }
 
 /// What is compared: a marker, or marker `b` in marker `a`'s frame.
@@ -296,10 +309,12 @@ fn print_pair(labels: &[char], values: &[&[f64]], i: usize, j: usize) {
         second_differences(values[i]).collect(),
         second_differences(values[j]).collect(),
     );
+    let mut opposite = false;
     let corr = match robust_correlation(values[i], values[j], noise) {
         Some(r) => {
             let n_eff = effective_samples(&da, &db) * MEDIAN_EFFICIENCY;
             let (lo, hi) = correlation_interval(r, n_eff);
+            opposite = hi < 0.0;
             format!("{r:>10.3} [{lo:.3}, {hi:.3}]")
         }
         None => format!("{:>10}", "-"),
@@ -310,6 +325,13 @@ fn print_pair(labels: &[char], values: &[&[f64]], i: usize, j: usize) {
         fmt(noise),
         noise_interval(noise, diff.len())
     );
+    if opposite {
+        println!(
+            "  note: {} and {} move in opposite directions: opposite sign conventions? The \
+             difference then holds the motion twice; negate one table's column first",
+            labels[i], labels[j]
+        );
+    }
 }
 
 /// Runs the comparison of `paths` (two or more), matching frames `by`; `pairs` as in
@@ -332,7 +354,7 @@ pub fn run(
         .zip('A'..='Z')
         .map(|(p, label)| load(label, p, &mut notes))
         .collect::<Result<Vec<_>, _>>()?;
-    let (series, left_out) = poses_by_marker(&inputs, by);
+    let (series, left_out) = poses_by_marker(&inputs, by)?;
     let common: Vec<u64> = series
         .first()
         .map(|m| m.keys().copied())
