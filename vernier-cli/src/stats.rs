@@ -29,18 +29,34 @@ use crate::plot::{mean_std, series};
 use crate::pose_table::{read_table_file, PoseRow};
 use vernier::phase::wrap_angle;
 
+mod compare;
+mod hat;
+mod reference;
+
+pub use compare::MatchBy;
+
 /// Arguments of `vernier stats`.
 #[derive(Parser)]
 pub struct StatsArgs {
-    /// Pose table written by `vernier detect` or `vernier bag` (CSV or JSON Lines).
-    input: PathBuf,
+    /// Pose table written by `vernier detect` or `vernier bag` (CSV or JSON Lines). Two or
+    /// more: estimates of the same frames (other settings, or the original program's result
+    /// CSV `image;id;x;y;alpha;pixelSize;…`), compared per marker and relative pair: each
+    /// series' noise, the noise of each pairwise difference, the correlation of their second
+    /// differences, and each estimator's own noise by the N-cornered hat (three or more).
+    #[arg(required = true, num_args = 1.., value_name = "TABLE")]
+    inputs: Vec<PathBuf>,
+    /// How the frames of several tables are matched: by image name (the number in the file
+    /// name, so that `Image96.png` matches the original's `96`) or by frame index.
+    #[arg(long = "match", value_enum, default_value = "name")]
+    match_by: MatchBy,
     /// Relative pair `A:B` (pose of marker B in marker A's frame); repeat for several.
     /// Default: every pair of the markers in the table (at most 8 markers).
     #[arg(long = "pair", value_parser = parse_pair)]
     pairs: Vec<(u64, u64)>,
     /// Another pose table of the same frames (CSV or JSON Lines, rows matched by frame number
     /// and marker ID): prints the noise of each marker's difference from it (the motion
-    /// cancels) and the correlation of the two series' second differences.
+    /// cancels) and the correlation of the two series' second differences. With one table
+    /// only; `vernier stats A B` compares them in full.
     #[arg(long, value_name = "OTHER")]
     against: Option<PathBuf>,
 }
@@ -298,14 +314,27 @@ fn print_against(
 
 /// Runs `vernier stats`.
 pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
-    let rows = read_table_file(&args.input)?;
+    let input = match args.inputs.as_slice() {
+        [input] => input,
+        [] => return Err("no pose table given".into()),
+        several => {
+            if args.against.is_some() {
+                return Err(
+                    "--against takes one table; with several, each is compared with each".into(),
+                );
+            }
+            compare::run(several, args.match_by, &args.pairs, MAX_DEFAULT_MARKERS)?;
+            return Ok(ExitCode::SUCCESS);
+        }
+    };
+    let rows = read_table_file(input)?;
     let other = match &args.against {
         Some(path) => Some((read_table_file(path)?, path)),
         None => None,
     };
     let (markers, _, _) = series(&rows);
     if markers.is_empty() {
-        return Err(format!("{}: no pose in the table", args.input.display()));
+        return Err(format!("{}: no pose in the table", input.display()));
     }
     let by_id: BTreeMap<u64, &[&PoseRow]> =
         markers.iter().map(|s| (s.id, s.rows.as_slice())).collect();
