@@ -120,7 +120,20 @@ struct RenderArgs {
     output: PathBuf,
 }
 
+/// Restores SIGPIPE's default action (Rust ignores it): a closed pipe downstream
+/// (`vernier stats … | head`) then ends the program quietly, as it ends other Unix tools,
+/// instead of a panic in `println!`.
+fn exit_quietly_on_closed_pipe() {
+    #[cfg(unix)]
+    // SAFETY: called first in `main`, before any other thread exists; SIG_DFL is a valid
+    // disposition for SIGPIPE.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 fn main() -> ExitCode {
+    exit_quietly_on_closed_pipe();
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,

@@ -377,3 +377,29 @@ fn the_real_sequence_three_cornered_hat() {
         }
     }
 }
+
+/// `vernier stats … | head`: a reader that closes the pipe early ends the program as it ends
+/// other Unix tools (SIGPIPE), never with a panic.
+#[test]
+fn a_closed_pipe_ends_stats_without_a_panic() {
+    use std::process::Stdio;
+    let dir = scratch("stats_closed_pipe");
+    let rows: Vec<_> = (0..200u64)
+        .flat_map(|n| (0..40u64).map(move |id| (n, id, n as f64, 0.5 * n as f64, 1e-3)))
+        .collect();
+    write_table(&dir.join("many.csv"), &rows);
+    let mut child = vernier()
+        .args(["stats", s(&dir.join("many.csv"))])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot run vernier: {e}"));
+    // Close our end of its stdout before it writes.
+    drop(child.stdout.take());
+    let out = child
+        .wait_with_output()
+        .unwrap_or_else(|e| panic!("cannot wait for vernier: {e}"));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_ne!(out.status.code(), Some(101), "{stderr}");
+}
