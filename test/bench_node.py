@@ -38,28 +38,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from cyclonedds._clayer import ddspy_write  # noqa: E402
 from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet  # noqa: E402
 from cyclonedds.util import duration  # noqa: E402
 
 import harness  # noqa: E402
 
 SIZE = 1024
-CLK_TCK = os.sysconf("SC_CLK_TCK")
-
-
-def cpu_seconds(pid):
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    # Fields 14 and 15 of stat (utime, stime); index from after the command name.
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK
-
-
-def percentile(values, q):
-    if not values:
-        return float("nan")
-    ordered = sorted(values)
-    rank = max(1, min(len(ordered), int(-(-q * len(ordered) // 1))))
-    return ordered[rank - 1]
+cpu_seconds = harness.cpu_seconds
+percentile = harness.percentile
 
 
 class Receiver(threading.Thread):
@@ -90,9 +76,7 @@ class Receiver(threading.Thread):
 def run_rate(peer, receiver, node, frames, rate, seconds, expected_markers=1, shape=(SIZE, SIZE)):
     payloads = []
     for data in frames:
-        msg = harness.mono8(shape[0], shape[1], data, 0)
-        ser = msg.serialize(use_version_2=False)
-        payloads.append(bytearray(ser.ljust((len(ser) + 3) & ~3, b"\0")))
+        payloads.append(harness.image_payload(harness.mono8(shape[0], shape[1], data, 0)))
     receiver.results.clear()
     cpu0 = cpu_seconds(node.pid)
     dropped0 = int(receiver.diagnostics.get("frames_dropped", 0))
@@ -108,11 +92,8 @@ def run_rate(peer, receiver, node, frames, rate, seconds, expected_markers=1, sh
         if pause > 0:
             time.sleep(pause)
         now = time.time_ns()
-        buf = payloads[k % len(payloads)]
-        # Stamp = send time; bytes 4..12 after the 4-byte encapsulation header.
-        buf[4:8] = (now // 1_000_000_000).to_bytes(4, "little", signed=True)
-        buf[8:12] = (now % 1_000_000_000).to_bytes(4, "little")
-        ddspy_write(peer.image_writer._ref, bytes(buf))
+        # Stamp = send time.
+        harness.write_stamped(peer.image_writer, payloads[k % len(payloads)], now)
         sent.add(now)
         k += 1
     time.sleep(2.5)  # let the last frames and a diagnostics report arrive

@@ -10,6 +10,8 @@ import subprocess
 import time
 from pathlib import Path
 
+from cyclonedds._clayer import ddspy_write
+
 from cyclonedds.core import Policy, Qos
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
@@ -218,3 +220,52 @@ class ParamClient:
     def get(self, name, timeout=30.0):
         reply = call_service(self.get_w, self.get_r, t.GetParametersRequest(names=[name]), timeout)
         return reply.values[0]
+
+
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_seconds(pid):
+    """User + system CPU time of process `pid`, seconds (/proc/<pid>/stat)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    # Fields 14 and 15 of stat (utime, stime); index from after the command name.
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def rss_bytes(pid):
+    """Resident set size of process `pid`, bytes (VmRSS of /proc/<pid>/status); None once
+    the process is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
+def percentile(values, q):
+    """Nearest-rank percentile `q` in [0, 1] of `values` (nan when empty), as the node's
+    /diagnostics computes it."""
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    rank = max(1, min(len(ordered), int(-(-q * len(ordered) // 1))))
+    return ordered[rank - 1]
+
+
+def image_payload(msg):
+    """`msg` (a t.Image) serialised once as Cyclone writes it (XCDR1, padded to 4 bytes), for
+    `write_stamped`: a Python publisher keeps up with camera rates only by sending the same
+    bytes with a new stamp."""
+    ser = msg.serialize(use_version_2=False)
+    return bytearray(ser.ljust((len(ser) + 3) & ~3, b"\0"))
+
+
+def write_stamped(writer, payload, stamp_ns):
+    """Writes an `image_payload` with its header stamp set to `stamp_ns` (Cyclone's own C
+    writer sends it)."""
+    # Stamp: bytes 4..12, after the 4-byte encapsulation header.
+    payload[4:8] = (stamp_ns // 1_000_000_000).to_bytes(4, "little", signed=True)
+    payload[8:12] = (stamp_ns % 1_000_000_000).to_bytes(4, "little")
+    ddspy_write(writer._ref, bytes(payload))
