@@ -32,7 +32,9 @@ use crate::params::{ImageQos, NodeParams, QosDurability, QosHistory, QosReliabil
 use crate::processing::{annotate, FrameOutput, Processor, DEFAULT_CAMERA_FRAME};
 use crate::ros_args::{fully_qualified, RosArgs};
 use log::{error, info, warn};
+use ros2_client::dds::rustdds::TopicKind;
 use ros2_client::qos::{Durability, History, Reliability, WhenFull};
+use ros2_client::ros2::{policy, QosPolicies, QosPolicyBuilder};
 use ros2_client::{
     Context, MessageTypeName, Name, Node, NodeName, NodeOptions, ParameterValue, Publisher,
     QosProfile, Subscription,
@@ -51,6 +53,11 @@ pub const DEFAULT_NODE_NAME: &str = "vernier_detector";
 const DIAGNOSTICS_PERIOD: Duration = Duration::from_secs(1);
 /// At most one warning of a kind per this period.
 const WARN_PERIOD: Duration = Duration::from_secs(5);
+/// At most one `~/debug_image` per this period: an annotated frame is for eyes, and each one
+/// is megabytes on the wire.
+const DEBUG_IMAGE_PERIOD: Duration = Duration::from_millis(100);
+/// Most `~/debug_image` frames the writer holds unacknowledged (see [`bounded_publisher`]).
+const DEBUG_IMAGE_WINDOW: i32 = 4;
 
 /// Usage text for `--help`.
 pub const USAGE: &str = "\
@@ -65,7 +72,7 @@ Publishes:  ~/detections (vision_msgs/Detection3DArray), ~/markers
             (vernier_ros/MarkerPoseArray), ~/marker_<id>/pose (geometry_msgs/PoseStamped),
             ~/marker_<id>/pose_with_covariance (geometry_msgs/PoseWithCovarianceStamped),
             ~/relative/marker_<a>_<b>/pose, /tf, /diagnostics, /rosout,
-            ~/debug_image (only while subscribed)
+            ~/debug_image (only while subscribed, at most 10 Hz)
 Parameters: see params/detector.yaml; also use_sim_time and
             qos_overrides./<image topic>.subscription.reliability|history|depth|durability.
             The DDS domain is ROS_DOMAIN_ID (default 0); ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
@@ -268,7 +275,13 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
         markers: publisher(&mut node, &topic("~/markers"), output_qos(10))?,
         detections: publisher(&mut node, &topic("~/detections"), output_qos(10))?,
         tf: publisher(&mut node, &topic("/tf"), output_qos(100))?,
-        debug: publisher(&mut node, &topic("~/debug_image"), output_qos(1))?,
+        debug: bounded_publisher(
+            &mut node,
+            &context,
+            &topic("~/debug_image"),
+            output_qos(1),
+            DEBUG_IMAGE_WINDOW,
+        )?,
         poses: BTreeMap::new(),
         relative: BTreeMap::new(),
     };
@@ -364,7 +377,7 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
         };
         let report = lock(&shared.stats).report(Instant::now(), stamp, &fq_name, &image_topic);
         if let Err(e) = diagnostics.publish(report) {
-            warn!("cannot publish diagnostics: {e:?}");
+            warn!("cannot publish diagnostics: {}", write_failure(&e));
         }
     }
 }
@@ -506,6 +519,45 @@ fn publisher<T: RosType + ros2_client::Message>(
     qos: QosProfile,
 ) -> Result<Publisher<T>, String> {
     let topic = create_topic::<T>(node, absolute_name, &qos)?;
+    node.create_publisher(&topic, Some(qos))
+        .map_err(|e| format!("cannot publish on {absolute_name}: {e:?}"))
+}
+
+/// A publisher whose writer holds at most `max_samples` unacknowledged samples.
+///
+/// rustdds's reliable writer keeps up to 8192 samples that a reader has not acknowledged,
+/// whatever its `KeepLast` depth: a `~/debug_image` reader slower than the frame rate made
+/// the node hold hundreds of megabytes of annotated frames (the soak test,
+/// test/run_soak.sh). The topic carries a resource limit of `max_samples`, which the writer
+/// inherits (ros2-client's `QosProfile` has none); a write beyond it fails at once
+/// (`WhenFull::Fail`), and the frame is skipped.
+fn bounded_publisher<T: RosType + ros2_client::Message>(
+    node: &mut Node,
+    context: &Context,
+    absolute_name: &str,
+    qos: QosProfile,
+    max_samples: i32,
+) -> Result<Publisher<T>, String> {
+    let name = Name::parse(absolute_name)
+        .map_err(|e| format!("invalid topic name {absolute_name}: {e}"))?;
+    let limits = QosPolicyBuilder::new()
+        .resource_limits(policy::ResourceLimits {
+            max_samples,
+            max_instances: 1,
+            max_samples_per_instance: max_samples,
+        })
+        .build();
+    // Absolute names need no node to expand `~`.
+    let anyone = NodeName::new("/", "node").map_err(|e| e.to_string())?;
+    let topic = context
+        .domain_participant()
+        .create_topic(
+            name.to_dds_name("rt", &anyone, ""),
+            MessageTypeName::new(T::PACKAGE, T::NAME).dds_msg_type(),
+            &QosPolicies::from(&qos).modify_by(&limits),
+            TopicKind::NoKey,
+        )
+        .map_err(|e| format!("cannot create topic {absolute_name}: {e:?}"))?;
     node.create_publisher(&topic, Some(qos))
         .map_err(|e| format!("cannot publish on {absolute_name}: {e:?}"))
 }
@@ -658,6 +710,7 @@ fn work_loop(
     let mut publish_warning = Throttle::new(WARN_PERIOD);
     let mut frame_warning = Throttle::new(WARN_PERIOD);
     let mut last_start: Option<Instant> = None;
+    let mut last_debug: Option<Instant> = None;
     loop {
         let frame = {
             let mut slot = lock(&shared.slot);
@@ -722,11 +775,14 @@ fn work_loop(
         }
         let mut failures = publish(&output, &mut publishers, node, names, processor.params());
         // The annotated image costs a copy of the frame: only while someone subscribes.
-        if shared.debug_wanted.load(Ordering::Relaxed) {
+        if shared.debug_wanted.load(Ordering::Relaxed)
+            && last_debug.is_none_or(|t| start.duration_since(t) >= DEBUG_IMAGE_PERIOD)
+        {
             if let Some(grey) = processor.last_frame() {
+                last_debug = Some(start);
                 let debug = annotate(grey, &output.raw, &output.markers.header);
                 if let Err(e) = publishers.debug.publish(debug) {
-                    failures.push(format!("debug image: {e:?}"));
+                    failures.push(format!("debug image: {}", write_failure(&e)));
                 }
             }
         }
@@ -768,6 +824,13 @@ fn may_publish<T>(id: u64, with_publishers: &BTreeMap<u64, T>, params: &NodePara
         || unlisted() < params.max_marker_publishers
 }
 
+/// What a failed write says, without the message it carries: the error's `{:?}` prints the
+/// whole message, megabytes of text for a `~/debug_image` frame, once per frame while a slow
+/// reader keeps the writer full (found by the soak test, test/run_soak.sh).
+fn write_failure<D>(e: &ros2_client::WriteError<D>) -> String {
+    e.to_string()
+}
+
 /// Publishes one frame's outputs; returns the failures.
 fn publish(
     output: &FrameOutput,
@@ -793,10 +856,12 @@ fn publish(
             None => publishers.pose(*id, &mut lock(node), names),
         }
         .and_then(|p| {
-            p.pose.publish(pose.clone()).map_err(|e| format!("{e:?}"))?;
+            p.pose
+                .publish(pose.clone())
+                .map_err(|e| write_failure(&e))?;
             p.with_covariance
                 .publish(with_covariance.clone())
-                .map_err(|e| format!("{e:?}"))
+                .map_err(|e| write_failure(&e))
         });
         if let Err(e) = result {
             failures.push(format!("marker {id} pose: {e}"));
@@ -804,10 +869,10 @@ fn publish(
     }
     for (pair, pose) in &output.relative {
         let result = match publishers.relative.get(pair) {
-            Some(p) => p.publish(pose.clone()).map_err(|e| format!("{e:?}")),
+            Some(p) => p.publish(pose.clone()).map_err(|e| write_failure(&e)),
             None => publishers
                 .relative_pose(*pair, &mut lock(node), names)
-                .and_then(|p| p.publish(pose.clone()).map_err(|e| format!("{e:?}"))),
+                .and_then(|p| p.publish(pose.clone()).map_err(|e| write_failure(&e))),
         };
         if let Err(e) = result {
             failures.push(format!("relative pose {}:{}: {e}", pair.0, pair.1));
@@ -815,14 +880,14 @@ fn publish(
     }
     if params.publish_tf && !output.tf.transforms.is_empty() {
         if let Err(e) = publishers.tf.publish(output.tf.clone()) {
-            failures.push(format!("/tf: {e:?}"));
+            failures.push(format!("/tf: {}", write_failure(&e)));
         }
     }
     if let Err(e) = publishers.detections.publish(output.detections.clone()) {
-        failures.push(format!("detections: {e:?}"));
+        failures.push(format!("detections: {}", write_failure(&e)));
     }
     if let Err(e) = publishers.markers.publish(output.markers.clone()) {
-        failures.push(format!("markers: {e:?}"));
+        failures.push(format!("markers: {}", write_failure(&e)));
     }
     failures
 }
@@ -831,6 +896,20 @@ fn publish(
 mod tests {
     use super::*;
     use crate::params::ParamValue;
+
+    #[test]
+    fn a_failed_write_is_described_without_its_message() {
+        let frame = Image {
+            width: 1024,
+            height: 1024,
+            step: 3 * 1024,
+            encoding: "rgb8".into(),
+            data: vec![255; 3 * 1024 * 1024],
+            ..Image::default()
+        };
+        let text = write_failure(&ros2_client::WriteError::WouldBlock { data: frame });
+        assert!(text.len() < 100, "{} bytes: {}", text.len(), &text[..100]);
+    }
 
     #[test]
     fn per_marker_publishers_are_bounded_for_unlisted_ids() {
