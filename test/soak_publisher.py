@@ -43,7 +43,7 @@ def masked(data, width, height, frame, truth):
     radius = 0.78 * side_px
     fill = background(data)
     for row in range(max(0, int(cy - radius)), min(height, int(cy + radius) + 1)):
-        half = (radius * radius - (row - cy) ** 2) ** 0.5
+        half = max(0.0, radius * radius - (row - cy) ** 2) ** 0.5
         lo, hi = max(0, int(cx - half)), min(width, int(cx + half) + 1)
         if hi > lo:
             out[row * width + lo:row * width + hi] = bytes([fill]) * (hi - lo)
