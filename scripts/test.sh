@@ -2,7 +2,8 @@
 # The whole test suite: formatting, lints, every workspace test (unit, synthetic round trips,
 # real images from $VERNIER_DATA_DIR, default ../shared/data, independent readers and DDS peer
 # from the ignored .venv/), the docs' commands, links and API docs (scripts/check_docs.sh), the
-# ROS 2 node's interoperability test against Cyclone DDS and its colcon build.
+# ROS 2 node's interoperability test against Cyclone DDS, its colcon build and its 2-minute
+# soak test.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
@@ -41,6 +42,8 @@ VERNIER_ROS_PROFILE=test bash test/run_interop.sh
 # dependencies.
 echo "== colcon build, install tree, installed node (test/run_colcon.sh)"
 VERNIER_ROS_PROFILE=test bash test/run_colcon.sh
+echo "== soak: the node for 2 minutes at 60 Hz with faults (test/run_soak.sh)"
+VERNIER_ROS_PROFILE=test bash test/run_soak.sh
 # The optional rerun feature is never in the default build (a large SDK); it must still
 # compile and pass the lints.
 echo "== cargo check/clippy --features rerun (vernier-cli)"
