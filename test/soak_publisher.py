@@ -52,8 +52,9 @@ def masked(data, width, height, frame, truth):
 
 def message(variant, data, width, height, frame, truth):
     """The image message of `variant` for a rendered frame (`data`, its truth entry)."""
-    image = lambda payload, **kw: harness.mono8(width, height, payload, 0, frame_id=FRAME_ID,
-                                                **kw)
+    def image(payload, **kw):
+        return harness.mono8(width, height, payload, 0, frame_id=FRAME_ID, **kw)
+
     if variant == "good":
         return image(data)
     if variant == "masked":
