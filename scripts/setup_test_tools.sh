@@ -34,6 +34,8 @@ fi
     "colcon-package-selection==0.2.10"
 cargo_ament_build=0.1.11
 if ! grep -qs "cargo-ament-build $cargo_ament_build " "$venv/.crates.toml"; then
-    cargo install --quiet --locked --root "$venv" --version "$cargo_ament_build" cargo-ament-build
+    # --force: a binary left by an interrupted install (no record in .crates.toml) is replaced.
+    cargo install --quiet --locked --force --root "$venv" --version "$cargo_ament_build" \
+        cargo-ament-build
 fi
 "$venv/bin/python" -c "import gdstk, rosbags, cyclonedds.domain; print('test tools ready: gdstk', gdstk.__version__)"
