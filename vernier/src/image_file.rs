@@ -273,7 +273,7 @@ mod tests {
         let value = |x: u32, y: u32, k: u32| ((x * 7 + y * 13 + k * 29) % 256) as u8;
         let grey8 = image::GrayImage::from_fn(w, h, |x, y| image::Luma([value(x, y, 0)]));
         let grey16 = image::ImageBuffer::<image::Luma<u16>, _>::from_fn(h, w, |x, y| {
-            image::Luma([u16::from(value(x, y, 1)) * 257 + 3])
+            image::Luma([u16::from(value(x, y, 1)) * 256 + 3])
         });
         let rgb8 = image::RgbImage::from_fn(w + 5, h, |x, y| {
             image::Rgb([value(x, y, 0), value(x, y, 1), value(x, y, 2)])
