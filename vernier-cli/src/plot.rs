@@ -239,124 +239,141 @@ fn draw(
     root.fill(&WHITE)?;
     let panels = root.split_evenly((QUANTITIES.len(), 2));
     for (qi, q) in QUANTITIES.iter().enumerate() {
-        // Time series.
-        let mut lines = Vec::new();
-        let (mut t_max, mut v_min, mut v_max) = (0.0f64, f64::INFINITY, f64::NEG_INFINITY);
-        for s in all {
-            let v: Vec<(f64, f64)> = s
-                .time
-                .iter()
-                .zip(&s.rows)
-                .filter_map(|(t, r)| (q.get)(r).map(|v| (*t, v * q.scale)))
-                .collect();
-            if v.is_empty() {
-                continue;
-            }
-            let mean = v.iter().map(|p| p.1).sum::<f64>() / v.len() as f64;
-            let centred: Vec<(f64, f64)> = v.iter().map(|&(t, y)| (t, y - mean)).collect();
-            for &(t, y) in &centred {
-                t_max = t_max.max(t);
-                v_min = v_min.min(y);
-                v_max = v_max.max(y);
-            }
-            lines.push((s.id, centred));
-        }
-        let pad = ((v_max - v_min) * 0.05).max(1e-12);
-        let mut chart = ChartBuilder::on(&panels[2 * qi])
-            .caption(
-                format!("{} − mean ({})", q.name, q.unit),
-                ("sans-serif", 18),
-            )
-            .margin(8)
-            .x_label_area_size(30)
-            .y_label_area_size(70)
-            .build_cartesian_2d(0.0..t_max.max(1e-9), (v_min - pad)..(v_max + pad))?;
-        chart
-            .configure_mesh()
-            .x_desc(format!("time ({time_unit})"))
-            .label_style(("sans-serif", 13))
-            .draw()?;
-        for (k, (id, points)) in lines.iter().enumerate() {
-            let color = PALETTE[k % PALETTE.len()];
-            chart
-                .draw_series(LineSeries::new(
-                    points.iter().copied(),
-                    color.stroke_width(1),
-                ))?
-                .label(format!("id {id}"))
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color));
-        }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 13))
-            .draw()?;
-
-        // Allan deviation, log-log.
-        let curves: Vec<(u64, Vec<(f64, f64)>)> = all
-            .iter()
-            .map(|s| {
-                let v: Vec<f64> = s
-                    .rows
-                    .iter()
-                    .filter_map(|r| (q.get)(r))
-                    .map(|v| v * q.scale)
-                    .collect();
-                (
-                    s.id,
-                    allan_deviation(&v, tau0)
-                        .into_iter()
-                        .filter(|p| p.1 > 0.0)
-                        .collect::<Vec<_>>(),
-                )
-            })
-            .filter(|(_, c)| !c.is_empty())
-            .collect();
-        let area = &panels[2 * qi + 1];
-        if curves.is_empty() {
-            area.titled("Allan deviation: too few samples", ("sans-serif", 18))?;
-            continue;
-        }
-        let (mut t_lo, mut t_hi, mut d_lo, mut d_hi) =
-            (f64::INFINITY, 0.0f64, f64::INFINITY, 0.0f64);
-        for (_, c) in &curves {
-            for &(t, d) in c {
-                t_lo = t_lo.min(t);
-                t_hi = t_hi.max(t);
-                d_lo = d_lo.min(d);
-                d_hi = d_hi.max(d);
-            }
-        }
-        // At least a decade per axis, so that the log axes get labelled ticks.
-        let widen = |lo: f64, hi: f64| {
-            let centre = (lo * hi).sqrt();
-            let half = (hi / lo).sqrt().max(10f64.sqrt()) * 1.5;
-            (centre / half, centre * half)
-        };
-        let ((t_lo, t_hi), (d_lo, d_hi)) = (widen(t_lo, t_hi), widen(d_lo, d_hi));
-        let mut chart = ChartBuilder::on(area)
-            .caption(
-                format!("Allan deviation of {} ({})", q.name, q.unit),
-                ("sans-serif", 18),
-            )
-            .margin(8)
-            .x_label_area_size(30)
-            .y_label_area_size(70)
-            .build_cartesian_2d((t_lo..t_hi).log_scale(), (d_lo..d_hi).log_scale())?;
-        chart
-            .configure_mesh()
-            .x_desc(format!("averaging time τ ({time_unit})"))
-            .y_label_formatter(&|v| format!("{v:.1e}"))
-            .label_style(("sans-serif", 13))
-            .draw()?;
-        for (k, (_, c)) in curves.iter().enumerate() {
-            let color = PALETTE[k % PALETTE.len()];
-            chart.draw_series(LineSeries::new(c.iter().copied(), color.stroke_width(2)))?;
-            chart.draw_series(c.iter().map(|&p| Circle::new(p, 3, color.filled())))?;
-        }
+        draw_time_series(&panels[2 * qi], all, q, time_unit)?;
+        draw_allan_deviation(&panels[2 * qi + 1], all, q, tau0, time_unit)?;
     }
     root.present()?;
+    Ok(())
+}
+
+/// A plot panel of the bitmap.
+type Panel<'a> = DrawingArea<BitMapBackend<'a>, plotters::coord::Shift>;
+
+/// Quantity `q` of each series minus its mean against time, in `area`.
+fn draw_time_series(area: &Panel, all: &[Series], q: &Quantity, time_unit: &str) -> DrawResult {
+    let mut lines = Vec::new();
+    let (mut t_max, mut v_min, mut v_max) = (0.0f64, f64::INFINITY, f64::NEG_INFINITY);
+    for s in all {
+        let v: Vec<(f64, f64)> = s
+            .time
+            .iter()
+            .zip(&s.rows)
+            .filter_map(|(t, r)| (q.get)(r).map(|v| (*t, v * q.scale)))
+            .collect();
+        if v.is_empty() {
+            continue;
+        }
+        let mean = v.iter().map(|p| p.1).sum::<f64>() / v.len() as f64;
+        let centred: Vec<(f64, f64)> = v.iter().map(|&(t, y)| (t, y - mean)).collect();
+        for &(t, y) in &centred {
+            t_max = t_max.max(t);
+            v_min = v_min.min(y);
+            v_max = v_max.max(y);
+        }
+        lines.push((s.id, centred));
+    }
+    let pad = ((v_max - v_min) * 0.05).max(1e-12);
+    let mut chart = ChartBuilder::on(area)
+        .caption(
+            format!("{} − mean ({})", q.name, q.unit),
+            ("sans-serif", 18),
+        )
+        .margin(8)
+        .x_label_area_size(30)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0.0..t_max.max(1e-9), (v_min - pad)..(v_max + pad))?;
+    chart
+        .configure_mesh()
+        .x_desc(format!("time ({time_unit})"))
+        .label_style(("sans-serif", 13))
+        .draw()?;
+    for (k, (id, points)) in lines.iter().enumerate() {
+        let color = PALETTE[k % PALETTE.len()];
+        chart
+            .draw_series(LineSeries::new(
+                points.iter().copied(),
+                color.stroke_width(1),
+            ))?
+            .label(format!("id {id}"))
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color));
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.8))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 13))
+        .draw()?;
+    Ok(())
+}
+
+/// The Allan deviation of quantity `q` of each series against averaging time, log-log, in
+/// `area` (or a title saying there are too few samples).
+fn draw_allan_deviation(
+    area: &Panel,
+    all: &[Series],
+    q: &Quantity,
+    tau0: f64,
+    time_unit: &str,
+) -> DrawResult {
+    let curves: Vec<(u64, Vec<(f64, f64)>)> = all
+        .iter()
+        .map(|s| {
+            let v: Vec<f64> = s
+                .rows
+                .iter()
+                .filter_map(|r| (q.get)(r))
+                .map(|v| v * q.scale)
+                .collect();
+            (
+                s.id,
+                allan_deviation(&v, tau0)
+                    .into_iter()
+                    .filter(|p| p.1 > 0.0)
+                    .collect::<Vec<_>>(),
+            )
+        })
+        .filter(|(_, c)| !c.is_empty())
+        .collect();
+    if curves.is_empty() {
+        area.titled("Allan deviation: too few samples", ("sans-serif", 18))?;
+        return Ok(());
+    }
+    let (mut t_lo, mut t_hi, mut d_lo, mut d_hi) = (f64::INFINITY, 0.0f64, f64::INFINITY, 0.0f64);
+    for (_, c) in &curves {
+        for &(t, d) in c {
+            t_lo = t_lo.min(t);
+            t_hi = t_hi.max(t);
+            d_lo = d_lo.min(d);
+            d_hi = d_hi.max(d);
+        }
+    }
+    // At least a decade per axis, so that the log axes get labelled ticks.
+    let widen = |lo: f64, hi: f64| {
+        let centre = (lo * hi).sqrt();
+        let half = (hi / lo).sqrt().max(10f64.sqrt()) * 1.5;
+        (centre / half, centre * half)
+    };
+    let ((t_lo, t_hi), (d_lo, d_hi)) = (widen(t_lo, t_hi), widen(d_lo, d_hi));
+    let mut chart = ChartBuilder::on(area)
+        .caption(
+            format!("Allan deviation of {} ({})", q.name, q.unit),
+            ("sans-serif", 18),
+        )
+        .margin(8)
+        .x_label_area_size(30)
+        .y_label_area_size(70)
+        .build_cartesian_2d((t_lo..t_hi).log_scale(), (d_lo..d_hi).log_scale())?;
+    chart
+        .configure_mesh()
+        .x_desc(format!("averaging time τ ({time_unit})"))
+        .y_label_formatter(&|v| format!("{v:.1e}"))
+        .label_style(("sans-serif", 13))
+        .draw()?;
+    for (k, (_, c)) in curves.iter().enumerate() {
+        let color = PALETTE[k % PALETTE.len()];
+        chart.draw_series(LineSeries::new(c.iter().copied(), color.stroke_width(2)))?;
+        chart.draw_series(c.iter().map(|&p| Circle::new(p, 3, color.filled())))?;
+    }
     Ok(())
 }
 

@@ -231,6 +231,7 @@ const MIN_PIXEL_SIZE_M: f64 = 1e-12;
 const MAX_PIXEL_SIZE_M: f64 = 0.1;
 
 /// Every parameter of the node, in documentation order (params/detector.yaml follows it).
+/// Kept whole and long: it is one declarative table, read top to bottom as the reference.
 pub fn specs() -> Vec<ParamSpec> {
     use ParamValue as V;
     let spec = |name, default, description| ParamSpec {
@@ -652,146 +653,44 @@ impl NodeParams {
         self.marker_ids.is_empty() || self.marker_ids.contains(&id)
     }
 
+    /// Validates every value and derives the typed set, checking the parameters in
+    /// declaration order so that the first invalid one is the one reported.
     fn from_values(values: BTreeMap<String, ParamValue>) -> Result<NodeParams, String> {
-        let get = |name: &str| values.get(name).cloned().unwrap_or(ParamValue::NotSet);
-        let string = |name: &str| match get(name) {
-            ParamValue::String(s) => Ok(s),
-            other => Err(format!("`{name}` must be a string, got {other:?}")),
-        };
-        let double = |name: &str| match get(name) {
-            ParamValue::Double(v) if v.is_finite() => Ok(v),
-            other => Err(format!("`{name}` must be a finite double, got {other:?}")),
-        };
-        let integer = |name: &str| match get(name) {
-            ParamValue::Integer(v) => Ok(v),
-            other => Err(format!("`{name}` must be an integer, got {other:?}")),
-        };
-        let strings = |name: &str| match get(name) {
-            ParamValue::StringArray(v) => Ok(v),
-            other => Err(format!("`{name}` must be a string array, got {other:?}")),
-        };
-        // An integer within the schema's range for `name` (0 = `None` where 0 means
-        // "default").
-        let ranged = |name: &str| -> Result<Option<i64>, String> {
-            let range = spec_range(name);
-            let zero_default = range.is_some_and(|r| r.zero_means_default);
-            match integer(name)? {
-                0 if zero_default => Ok(None),
-                v if range.is_some_and(|r| (r.min..=r.max).contains(&(v as f64))) => Ok(Some(v)),
-                v => Err(format!(
-                    "`{name}` must be {}in {}, got {v}",
-                    if zero_default { "0 (default) or " } else { "" },
-                    range.map_or("range".into(), |r| format!("{}..={}", r.min, r.max))
-                )),
-            }
-        };
-        let flag = |name: &str| boolean(name, &get(name));
-
-        let pattern_type: MarkerKind = string("pattern_type")?
-            .parse()
-            .map_err(|e: vernier::Error| e.to_string())?;
-        let pattern_file = string("pattern_file")?;
-        let period = double("period")?;
-        if period != 0.0 {
-            // 0 = from the pattern file; any other value must be in the shared range.
-            limits::check_period(period)
-                .map_err(|e| format!("{e} (or 0 = from the pattern file)"))?;
-        }
-        let unit = string("period_unit")?;
-        let metres_per_unit = UNITS
-            .iter()
-            .find(|(name, _)| *name == unit)
-            .map(|(_, m)| *m)
-            .ok_or_else(|| format!("`period_unit` must be nm, um, mm or m, got `{unit}`"))?;
-        let code_size = ranged("code_size")?;
-        let code_depth = ranged("code_depth")?;
-        let window_size = ranged("window_size")?;
-        let polarity =
-            vernier::parse_polarity_setting(&string("polarity")?).map_err(|e| e.to_string())?;
-        let bitmaps = strings("bitmaps")?;
-        let marker_ids = match get("marker_ids") {
-            ParamValue::IntegerArray(ids) => ids
-                .iter()
-                .map(|&id| u64::try_from(id).map_err(|_| format!("`marker_ids`: negative id {id}")))
-                .collect::<Result<Vec<u64>, String>>()?,
-            other => {
-                return Err(format!(
-                    "`marker_ids` must be an integer array, got {other:?}"
-                ))
-            }
-        };
-        let relative_pairs = strings("relative_pairs")?
-            .iter()
-            .map(|pair| limits::parse_relative_pair(pair))
-            .collect::<Result<Vec<_>, String>>()?;
-        let min_quality = limits::check_quality("min_quality", double("min_quality")?)
-            .map_err(|e| e.to_string())?;
-        let camera_frame = string("camera_frame")?;
-        let marker_frame_prefix = string("marker_frame_prefix")?;
-        let publish_tf = flag("publish_tf")?;
-        let max_rate =
-            limits::check_rate("max_rate", double("max_rate")?).map_err(|e| e.to_string())?;
-        let compressed_input = match string("image_transport")?.as_str() {
-            "raw" => false,
-            "compressed" => true,
-            other => {
-                return Err(format!(
-                    "`image_transport` must be raw or compressed, got `{other}`"
-                ))
-            }
-        };
-        let image_qos = string("image_qos")?;
-        if !["sensor_data", "reliable"].contains(&image_qos.as_str()) {
-            return Err(format!(
-                "`image_qos` must be sensor_data or reliable, got `{image_qos}`"
-            ));
-        }
-        // Both ranges exclude 0-as-default, so `ranged` gives `Some`.
-        let max_marker_publishers = ranged("max_marker_publishers")?.unwrap_or(1) as usize;
-        let pixel_size = match double("pixel_size")? {
+        let read = ValueReader { values: &values };
+        let pattern = PatternValues::read(&read)?;
+        let publication = PublicationValues::read(&read)?;
+        let pixel_size = match read.double("pixel_size")? {
             0.0 => None,
-            v if (MIN_PIXEL_SIZE_M..=MAX_PIXEL_SIZE_M).contains(&v) => Some(v / metres_per_unit),
+            v if (MIN_PIXEL_SIZE_M..=MAX_PIXEL_SIZE_M).contains(&v) => {
+                Some(v / pattern.metres_per_unit)
+            }
             v => {
                 return Err(format!(
                     "`pixel_size` must be 0 (measured) or in {MIN_PIXEL_SIZE_M:e}..={MAX_PIXEL_SIZE_M:e} m/px, got {v}"
                 ))
             }
         };
-        let tracking = flag("tracking")?;
-        let reacquire_every = ranged("reacquire_every")?.unwrap_or(0) as usize;
-        let max_image_pixels = u64::try_from(integer("max_image_pixels")?)
+        let tracking = read.flag("tracking")?;
+        let reacquire_every = read.ranged("reacquire_every")?.unwrap_or(0) as usize;
+        let max_image_pixels = u64::try_from(read.integer("max_image_pixels")?)
             .map_err(|_| "`max_image_pixels` must be ≥ 1 pixel".to_string())
             .and_then(|v| limits::check_max_pixels(v).map_err(|e| e.to_string()))?;
-
-        let settings = DetectorSettings {
-            pattern_type,
-            pattern_file: (!pattern_file.is_empty()).then(|| PathBuf::from(&pattern_file)),
-            period: (period > 0.0).then_some(period),
-            code_size: code_size.map(|v| v as usize),
-            code_depth: code_depth.map(|v| v as u32),
-            window_size: window_size.map(|v| v as usize),
-            polarity,
-            bitmaps: bitmaps.iter().map(PathBuf::from).collect(),
-            pose_3d: flag("pose_3d")?,
-            // true: each type's default (periodic grids keep the engine's planes: their
-            // whole-image fit costs ~100× the engine); false: window planes for every type.
-            field_fit: (!flag("field_fit")?).then_some(false),
-            pixel_size,
-        };
+        let settings = pattern.settings(&read, pixel_size)?;
+        let metres_per_unit = pattern.metres_per_unit;
         let params = NodeParams {
             values,
             settings,
             metres_per_unit,
-            marker_ids,
-            relative_pairs,
-            min_quality,
-            camera_frame,
-            marker_frame_prefix,
-            publish_tf,
-            max_rate,
+            marker_ids: publication.marker_ids,
+            relative_pairs: publication.relative_pairs,
+            min_quality: publication.min_quality,
+            camera_frame: publication.camera_frame,
+            marker_frame_prefix: publication.marker_frame_prefix,
+            publish_tf: publication.publish_tf,
+            max_rate: publication.max_rate,
             max_image_pixels,
-            compressed_input,
-            max_marker_publishers,
+            compressed_input: publication.compressed_input,
+            max_marker_publishers: publication.max_marker_publishers,
             tracking: if tracking {
                 Some(reacquire_every)
             } else {
@@ -804,6 +703,206 @@ impl NodeParams {
         // marker type implemented...).
         params.build_detector()?;
         Ok(params)
+    }
+}
+
+/// Typed reads of the declared values, each error naming the parameter.
+struct ValueReader<'a> {
+    values: &'a BTreeMap<String, ParamValue>,
+}
+
+impl ValueReader<'_> {
+    fn get(&self, name: &str) -> ParamValue {
+        self.values.get(name).cloned().unwrap_or(ParamValue::NotSet)
+    }
+
+    fn string(&self, name: &str) -> Result<String, String> {
+        match self.get(name) {
+            ParamValue::String(s) => Ok(s),
+            other => Err(format!("`{name}` must be a string, got {other:?}")),
+        }
+    }
+
+    fn double(&self, name: &str) -> Result<f64, String> {
+        match self.get(name) {
+            ParamValue::Double(v) if v.is_finite() => Ok(v),
+            other => Err(format!("`{name}` must be a finite double, got {other:?}")),
+        }
+    }
+
+    fn integer(&self, name: &str) -> Result<i64, String> {
+        match self.get(name) {
+            ParamValue::Integer(v) => Ok(v),
+            other => Err(format!("`{name}` must be an integer, got {other:?}")),
+        }
+    }
+
+    fn strings(&self, name: &str) -> Result<Vec<String>, String> {
+        match self.get(name) {
+            ParamValue::StringArray(v) => Ok(v),
+            other => Err(format!("`{name}` must be a string array, got {other:?}")),
+        }
+    }
+
+    /// An integer within the schema's range for `name` (0 = `None` where 0 means
+    /// "default").
+    fn ranged(&self, name: &str) -> Result<Option<i64>, String> {
+        let range = spec_range(name);
+        let zero_default = range.is_some_and(|r| r.zero_means_default);
+        match self.integer(name)? {
+            0 if zero_default => Ok(None),
+            v if range.is_some_and(|r| (r.min..=r.max).contains(&(v as f64))) => Ok(Some(v)),
+            v => Err(format!(
+                "`{name}` must be {}in {}, got {v}",
+                if zero_default { "0 (default) or " } else { "" },
+                range.map_or("range".into(), |r| format!("{}..={}", r.min, r.max))
+            )),
+        }
+    }
+
+    fn flag(&self, name: &str) -> Result<bool, String> {
+        boolean(name, &self.get(name))
+    }
+}
+
+/// The values that describe the marker (`pattern_type` to `bitmaps`), validated.
+struct PatternValues {
+    pattern_type: MarkerKind,
+    pattern_file: String,
+    period: f64,
+    metres_per_unit: f64,
+    code_size: Option<i64>,
+    code_depth: Option<i64>,
+    window_size: Option<i64>,
+    polarity: Option<vernier::Polarity>,
+    bitmaps: Vec<String>,
+}
+
+impl PatternValues {
+    fn read(read: &ValueReader) -> Result<PatternValues, String> {
+        let pattern_type: MarkerKind = read
+            .string("pattern_type")?
+            .parse()
+            .map_err(|e: vernier::Error| e.to_string())?;
+        let pattern_file = read.string("pattern_file")?;
+        let period = read.double("period")?;
+        if period != 0.0 {
+            // 0 = from the pattern file; any other value must be in the shared range.
+            limits::check_period(period)
+                .map_err(|e| format!("{e} (or 0 = from the pattern file)"))?;
+        }
+        let unit = read.string("period_unit")?;
+        let metres_per_unit = UNITS
+            .iter()
+            .find(|(name, _)| *name == unit)
+            .map(|(_, m)| *m)
+            .ok_or_else(|| format!("`period_unit` must be nm, um, mm or m, got `{unit}`"))?;
+        Ok(PatternValues {
+            pattern_type,
+            pattern_file,
+            period,
+            metres_per_unit,
+            code_size: read.ranged("code_size")?,
+            code_depth: read.ranged("code_depth")?,
+            window_size: read.ranged("window_size")?,
+            polarity: vernier::parse_polarity_setting(&read.string("polarity")?)
+                .map_err(|e| e.to_string())?,
+            bitmaps: read.strings("bitmaps")?,
+        })
+    }
+
+    /// The detector settings, reading the last two flags (`pose_3d`, `field_fit`).
+    fn settings(
+        &self,
+        read: &ValueReader,
+        pixel_size: Option<f64>,
+    ) -> Result<DetectorSettings, String> {
+        Ok(DetectorSettings {
+            pattern_type: self.pattern_type,
+            pattern_file: (!self.pattern_file.is_empty())
+                .then(|| PathBuf::from(&self.pattern_file)),
+            period: (self.period > 0.0).then_some(self.period),
+            code_size: self.code_size.map(|v| v as usize),
+            code_depth: self.code_depth.map(|v| v as u32),
+            window_size: self.window_size.map(|v| v as usize),
+            polarity: self.polarity,
+            bitmaps: self.bitmaps.iter().map(PathBuf::from).collect(),
+            pose_3d: read.flag("pose_3d")?,
+            // true: each type's default (periodic grids keep the engine's planes: their
+            // whole-image fit costs ~100× the engine); false: window planes for every type.
+            field_fit: (!read.flag("field_fit")?).then_some(false),
+            pixel_size,
+        })
+    }
+}
+
+/// The values that choose what is published and how (`marker_ids` to
+/// `max_marker_publishers`), validated.
+struct PublicationValues {
+    marker_ids: Vec<u64>,
+    relative_pairs: Vec<(u64, u64)>,
+    min_quality: f64,
+    camera_frame: String,
+    marker_frame_prefix: String,
+    publish_tf: bool,
+    max_rate: f64,
+    compressed_input: bool,
+    max_marker_publishers: usize,
+}
+
+impl PublicationValues {
+    fn read(read: &ValueReader) -> Result<PublicationValues, String> {
+        let marker_ids = match read.get("marker_ids") {
+            ParamValue::IntegerArray(ids) => ids
+                .iter()
+                .map(|&id| u64::try_from(id).map_err(|_| format!("`marker_ids`: negative id {id}")))
+                .collect::<Result<Vec<u64>, String>>()?,
+            other => {
+                return Err(format!(
+                    "`marker_ids` must be an integer array, got {other:?}"
+                ))
+            }
+        };
+        let relative_pairs = read
+            .strings("relative_pairs")?
+            .iter()
+            .map(|pair| limits::parse_relative_pair(pair))
+            .collect::<Result<Vec<_>, String>>()?;
+        let min_quality = limits::check_quality("min_quality", read.double("min_quality")?)
+            .map_err(|e| e.to_string())?;
+        let camera_frame = read.string("camera_frame")?;
+        let marker_frame_prefix = read.string("marker_frame_prefix")?;
+        let publish_tf = read.flag("publish_tf")?;
+        let max_rate =
+            limits::check_rate("max_rate", read.double("max_rate")?).map_err(|e| e.to_string())?;
+        let compressed_input = match read.string("image_transport")?.as_str() {
+            "raw" => false,
+            "compressed" => true,
+            other => {
+                return Err(format!(
+                    "`image_transport` must be raw or compressed, got `{other}`"
+                ))
+            }
+        };
+        let image_qos = read.string("image_qos")?;
+        if !["sensor_data", "reliable"].contains(&image_qos.as_str()) {
+            return Err(format!(
+                "`image_qos` must be sensor_data or reliable, got `{image_qos}`"
+            ));
+        }
+        // Both ranges exclude 0-as-default, so `ranged` gives `Some`.
+        let max_marker_publishers = read.ranged("max_marker_publishers")?.unwrap_or(1) as usize;
+        Ok(PublicationValues {
+            marker_ids,
+            relative_pairs,
+            min_quality,
+            camera_frame,
+            marker_frame_prefix,
+            publish_tf,
+            max_rate,
+            compressed_input,
+            max_marker_publishers,
+        })
     }
 }
 

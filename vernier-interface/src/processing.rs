@@ -238,7 +238,6 @@ pub fn build_output(
     params: &NodeParams,
     period: f64,
 ) -> FrameOutput {
-    let scale = params.metres_per_unit;
     let frame_id = if !params.camera_frame.is_empty() {
         params.camera_frame.clone()
     } else if !image_header.frame_id.is_empty() {
@@ -265,83 +264,124 @@ pub fn build_output(
         ..FrameOutput::default()
     };
     for m in &markers {
-        // The same marker in SI units: its covariance then comes out in m² directly.
-        let si = MarkerPose {
-            pose: m.pose.scaled(scale),
-            ..m.clone()
-        };
-        let camera_from_marker = si.pose.camera_from_pattern();
-        let pose = Pose::from_isometry(&camera_from_marker);
-        let with_covariance = PoseWithCovariance {
-            pose,
-            // Over the window the marker's planes were fitted on.
-            covariance: si.covariance(period * scale, m.window_px as f64).into(),
-        };
-        let marker_frame = format!("{}{}", params.marker_frame_prefix, m.id);
-        out.markers.markers.push(MarkerMsg {
-            id: m.id,
-            pose,
-            pixel_size: si.pose.pixel_size,
-            quality: m.quality,
-            covariance: with_covariance.covariance,
-            duplicate_id: m.duplicate_id,
-            decode_confidence: m.decode_confidence.unwrap_or(-1.0),
-            measured_pixel_size: m.measured_pixel_size * scale,
-            measured_pixel_size_std: m.pixel_size_std * scale,
-        });
-        // The analysed window, flat: what the measurement covers on the part.
-        let side = m.window_px as f64 * si.pose.pixel_size;
-        out.detections.detections.push(Detection3D {
-            header: header.clone(),
-            results: vec![ObjectHypothesisWithPose {
-                hypothesis: ObjectHypothesis {
-                    class_id: m.id.to_string(),
-                    score: m.quality,
-                },
-                pose: with_covariance,
-            }],
-            bbox: BoundingBox3D {
-                center: pose,
-                size: Vector3 {
-                    x: side,
-                    y: side,
-                    z: 0.0,
-                },
-            },
-            id: marker_frame.clone(),
-        });
-        if out.poses.iter().any(|(id, _)| *id == m.id) {
-            continue;
-        }
-        out.poses.push((
-            m.id,
-            PoseStamped {
-                header: header.clone(),
-                pose,
-            },
-        ));
-        out.poses_with_covariance.push((
-            m.id,
-            PoseWithCovarianceStamped {
-                header: header.clone(),
-                pose: with_covariance,
-            },
-        ));
-        if params.publish_tf {
-            out.tf.transforms.push(TransformStamped {
-                header: header.clone(),
-                child_frame_id: marker_frame,
-                transform: Transform {
-                    translation: Vector3 {
-                        x: pose.position.x,
-                        y: pose.position.y,
-                        z: pose.position.z,
-                    },
-                    rotation: pose.orientation,
-                },
-            });
-        }
+        push_marker(&mut out, m, &header, params, period);
     }
+    push_relative_poses(&mut out, &markers, &header, params);
+    out.raw = markers;
+    out
+}
+
+/// Adds marker `m`'s messages to `out`: its array entries always, its pose topics and
+/// transform only for the first marker of its ID.
+fn push_marker(
+    out: &mut FrameOutput,
+    m: &MarkerPose,
+    header: &Header,
+    params: &NodeParams,
+    period: f64,
+) {
+    let scale = params.metres_per_unit;
+    // The same marker in SI units: its covariance then comes out in m² directly.
+    let si = MarkerPose {
+        pose: m.pose.scaled(scale),
+        ..m.clone()
+    };
+    let camera_from_marker = si.pose.camera_from_pattern();
+    let pose = Pose::from_isometry(&camera_from_marker);
+    let with_covariance = PoseWithCovariance {
+        pose,
+        // Over the window the marker's planes were fitted on.
+        covariance: si.covariance(period * scale, m.window_px as f64).into(),
+    };
+    let marker_frame = format!("{}{}", params.marker_frame_prefix, m.id);
+    out.markers.markers.push(MarkerMsg {
+        id: m.id,
+        pose,
+        pixel_size: si.pose.pixel_size,
+        quality: m.quality,
+        covariance: with_covariance.covariance,
+        duplicate_id: m.duplicate_id,
+        decode_confidence: m.decode_confidence.unwrap_or(-1.0),
+        measured_pixel_size: m.measured_pixel_size * scale,
+        measured_pixel_size_std: m.pixel_size_std * scale,
+    });
+    // The analysed window, flat: what the measurement covers on the part.
+    let side = m.window_px as f64 * si.pose.pixel_size;
+    out.detections.detections.push(Detection3D {
+        header: header.clone(),
+        results: vec![ObjectHypothesisWithPose {
+            hypothesis: ObjectHypothesis {
+                class_id: m.id.to_string(),
+                score: m.quality,
+            },
+            pose: with_covariance,
+        }],
+        bbox: BoundingBox3D {
+            center: pose,
+            size: Vector3 {
+                x: side,
+                y: side,
+                z: 0.0,
+            },
+        },
+        id: marker_frame.clone(),
+    });
+    if out.poses.iter().any(|(id, _)| *id == m.id) {
+        return;
+    }
+    push_pose_topics(out, m.id, with_covariance, marker_frame, header, params);
+}
+
+/// Adds the per-ID pose, pose-with-covariance and (with `publish_tf`) transform of the
+/// marker `id` in the frame `marker_frame`.
+fn push_pose_topics(
+    out: &mut FrameOutput,
+    id: u64,
+    with_covariance: PoseWithCovariance,
+    marker_frame: String,
+    header: &Header,
+    params: &NodeParams,
+) {
+    let pose = with_covariance.pose;
+    out.poses.push((
+        id,
+        PoseStamped {
+            header: header.clone(),
+            pose,
+        },
+    ));
+    out.poses_with_covariance.push((
+        id,
+        PoseWithCovarianceStamped {
+            header: header.clone(),
+            pose: with_covariance,
+        },
+    ));
+    if params.publish_tf {
+        out.tf.transforms.push(TransformStamped {
+            header: header.clone(),
+            child_frame_id: marker_frame,
+            transform: Transform {
+                translation: Vector3 {
+                    x: pose.position.x,
+                    y: pose.position.y,
+                    z: pose.position.z,
+                },
+                rotation: pose.orientation,
+            },
+        });
+    }
+}
+
+/// Adds the pose of `b` in `a`'s frame for each of `relative_pairs` whose two markers are
+/// both found.
+fn push_relative_poses(
+    out: &mut FrameOutput,
+    markers: &[MarkerPose],
+    header: &Header,
+    params: &NodeParams,
+) {
+    let scale = params.metres_per_unit;
     for &(a, b) in &params.relative_pairs {
         let find = |id: u64| markers.iter().find(|m| m.id == id);
         if let (Some(ma), Some(mb)) = (find(a), find(b)) {
@@ -358,8 +398,6 @@ pub fn build_output(
             ));
         }
     }
-    out.raw = markers;
-    out
 }
 
 /// An `rgb8` copy of `grey` with each marker's origin marked by a red cross and its x axis

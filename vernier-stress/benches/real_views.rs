@@ -152,6 +152,26 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     };
+    let (images, cases) = match load_images(&args) {
+        Ok(loaded) => loaded,
+        Err(e) => {
+            eprintln!("real_views: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let seeds: Vec<_> = real_seeds(args.seed, &cases, args.draws)
+        .into_iter()
+        .filter(|(_, c, s)| {
+            args.category.is_none_or(|k| k == *c) && args.only.is_none_or(|o| o == *s)
+        })
+        .collect();
+    let tables = run_all(&args, &images, &seeds);
+    print_report(&args, seeds.len(), &images, tables);
+    ExitCode::SUCCESS
+}
+
+/// The images of `REAL_CASES` whose file name contains `--image`, with their case indices.
+fn load_images(args: &Args) -> Result<(Vec<RealImage>, Vec<usize>), String> {
     let (mut images, mut cases) = (Vec::new(), Vec::new());
     for (index, case) in REAL_CASES.iter().enumerate() {
         if args
@@ -161,23 +181,15 @@ fn main() -> ExitCode {
         {
             continue;
         }
-        match RealImage::load(*case) {
-            Ok(i) => {
-                images.push(i);
-                cases.push(index);
-            }
-            Err(e) => {
-                eprintln!("real_views: {e}");
-                return ExitCode::FAILURE;
-            }
-        }
+        images.push(RealImage::load(*case).map_err(|e| e.to_string())?);
+        cases.push(index);
     }
-    let seeds: Vec<_> = real_seeds(args.seed, &cases, args.draws)
-        .into_iter()
-        .filter(|(_, c, s)| {
-            args.category.is_none_or(|k| k == *c) && args.only.is_none_or(|o| o == *s)
-        })
-        .collect();
+    Ok((images, cases))
+}
+
+/// Runs every scene of `seeds` `(image, category, seed)` on `--threads` threads, dumping
+/// failing scenes where asked, and tallies them.
+fn run_all(args: &Args, images: &[RealImage], seeds: &[(usize, RealCategory, u64)]) -> Tables {
     let total = seeds.len();
     let start = Instant::now();
     let next = AtomicUsize::new(0);
@@ -230,11 +242,16 @@ fn main() -> ExitCode {
             });
         }
     });
+    tables.into_inner().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Prints the tables per category and per image, and the failing scenes.
+fn print_report(args: &Args, total: usize, images: &[RealImage], tables: Tables) {
     let Tables {
         mut by_category,
         mut by_image,
         mut failing,
-    } = tables.into_inner().unwrap_or_else(|e| e.into_inner());
+    } = tables;
     println!(
         "## vernier real views: {total} scenes from seed {} ({} per image and category{})\n",
         args.seed,
@@ -273,7 +290,6 @@ fn main() -> ExitCode {
     for line in failing.iter().take(40) {
         println!("{line}");
     }
-    ExitCode::SUCCESS
 }
 
 impl Row {

@@ -147,6 +147,12 @@ fn main() -> ExitCode {
     if let Some(e) = dump_error {
         eprintln!("stress: dump: {e}");
     }
+    print_report(&args, total, &report);
+    ExitCode::SUCCESS
+}
+
+/// Prints the tables per family, the failing scenes and the generation profile.
+fn print_report(args: &Args, total: usize, report: &Report) {
     println!(
         "## vernier stress: {total} scenes from seed {} ({} generation threads)\n",
         args.only.unwrap_or(args.seed),
@@ -171,5 +177,4 @@ fn main() -> ExitCode {
     );
     println!("{}", report.failing_list(20));
     println!("{}", report.generation_profile());
-    ExitCode::SUCCESS
 }

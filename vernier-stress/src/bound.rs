@@ -141,7 +141,7 @@ pub fn position_bound(
     m: &Placed,
     f: &Formation,
 ) -> Result<Option<PositionBound>> {
-    let (w, h) = (f.clean.width, f.clean.height);
+    let w = f.clean.width;
     let border = m.side_px() * std::f64::consts::FRAC_1_SQRT_2;
     let steps = [
         STEP_PX,
@@ -149,45 +149,9 @@ pub fn position_bound(
         STEP_PX / border,
         STEP_PX / border * m.pixel_size,
     ];
-    // The pixels a move can change: the footprint's box, a tenth of the side for the layout's
-    // own bounds, and the blur margin of `add_marker`; rendered on that part of the frame.
-    let half = m.footprint().bounding_half();
-    let reach = half.x.max(half.y) + 0.1 * m.side_px() + (4.0 * f.blur_sigma).ceil() + 5.0;
-    let clip = |v: f64, n: usize| (v.floor().max(0.0) as usize).min(n);
-    let region = Region {
-        r0: clip(m.origin.y - reach, h),
-        r1: clip(m.origin.y + reach + 1.0, h),
-        c0: clip(m.origin.x - reach, w),
-        c1: clip(m.origin.x + reach + 1.0, w),
-    };
-    let (rw, rh) = (region.c1 - region.c0, region.r1 - region.r0);
-    let corner = Vector2::new(region.c0 as f64, region.r0 as f64);
-    let render = |k: usize, sign: f64| -> Result<Plane> {
-        let mut moved = *m;
-        let s = sign * steps[k];
-        match k {
-            0 => moved.origin.x += s,
-            1 => moved.origin.y += s,
-            2 => moved.alpha += s,
-            _ => moved.pixel_size += s,
-        }
-        let mut canvas = Plane::filled(rw, rh, 0.0);
-        add_marker(
-            &mut canvas,
-            layout,
-            moved.origin - corner,
-            moved.alpha,
-            moved.pixel_size,
-            f.blur_sigma,
-            moved.mirrored,
-        )?;
-        Ok(canvas)
-    };
-    let mut derivatives = Vec::with_capacity(4);
-    for (k, step) in steps.iter().enumerate() {
-        let (plus, minus) = (render(k, 1.0)?, render(k, -1.0)?);
-        derivatives.push((plus, minus, 2.0 * step));
-    }
+    let region = changed_region(m, f);
+    let derivatives = step_renders(layout, m, f, &region, &steps)?;
+    let rw = region.c1 - region.c0;
     // The derivatives of the clean pixel value at region pixel (r, c).
     let slope = |r: usize, c: usize| -> Vector4<f64> {
         let (i, local) = ((r + region.r0) * w + c + region.c0, r * rw + c);
@@ -224,6 +188,61 @@ pub fn position_bound(
             kind,
             known_shape,
         }))
+}
+
+/// The pixels a move of `m` can change: the footprint's box, a tenth of the side for the
+/// layout's own bounds, and the blur margin of `add_marker`, clipped to the frame.
+fn changed_region(m: &Placed, f: &Formation) -> Region {
+    let (w, h) = (f.clean.width, f.clean.height);
+    let half = m.footprint().bounding_half();
+    let reach = half.x.max(half.y) + 0.1 * m.side_px() + (4.0 * f.blur_sigma).ceil() + 5.0;
+    let clip = |v: f64, n: usize| (v.floor().max(0.0) as usize).min(n);
+    Region {
+        r0: clip(m.origin.y - reach, h),
+        r1: clip(m.origin.y + reach + 1.0, h),
+        c0: clip(m.origin.x - reach, w),
+        c1: clip(m.origin.x + reach + 1.0, w),
+    }
+}
+
+/// `m` rendered on `region` moved by `±steps[k]` in each pose parameter `k` (x, y, angle,
+/// pixel size): `(plus, minus, 2·step)` per parameter, for central differences.
+fn step_renders(
+    layout: &dyn Layout,
+    m: &Placed,
+    f: &Formation,
+    region: &Region,
+    steps: &[f64; 4],
+) -> Result<Vec<(Plane, Plane, f64)>> {
+    let (rw, rh) = (region.c1 - region.c0, region.r1 - region.r0);
+    let corner = Vector2::new(region.c0 as f64, region.r0 as f64);
+    let render = |k: usize, sign: f64| -> Result<Plane> {
+        let mut moved = *m;
+        let s = sign * steps[k];
+        match k {
+            0 => moved.origin.x += s,
+            1 => moved.origin.y += s,
+            2 => moved.alpha += s,
+            _ => moved.pixel_size += s,
+        }
+        let mut canvas = Plane::filled(rw, rh, 0.0);
+        add_marker(
+            &mut canvas,
+            layout,
+            moved.origin - corner,
+            moved.alpha,
+            moved.pixel_size,
+            f.blur_sigma,
+            moved.mirrored,
+        )?;
+        Ok(canvas)
+    };
+    let mut derivatives = Vec::with_capacity(4);
+    for (k, step) in steps.iter().enumerate() {
+        let (plus, minus) = (render(k, 1.0)?, render(k, -1.0)?);
+        derivatives.push((plus, minus, 2.0 * step));
+    }
+    Ok(derivatives)
 }
 
 /// The JPEG model's Fisher sum of a marker (`slope` its `J` on `region`) in a grey file of

@@ -111,24 +111,71 @@ pub fn evaluate(
     let detections = match detections {
         Ok(d) => d,
         Err(e) => {
-            return SceneResult {
-                markers,
-                found: 0,
-                wrong_id: 0,
-                false_markers: 0,
-                missed: markers,
-                position_errors: Vec::new(),
-                angle_errors: Vec::new(),
-                normalised_errors: Vec::new(),
-                bounded_errors: Vec::new(),
-                jpeg_modelled_errors: Vec::new(),
-                known_shape_errors: Vec::new(),
-                verdicts: Vec::new(),
-                error: Some(e),
-                detect_ms,
-            }
+            let mut r = empty_result(markers, Vec::new(), detect_ms);
+            r.missed = markers;
+            r.error = Some(e);
+            return r;
         }
     };
+    let mut r = empty_result(markers, match_verdicts(scene, detections), detect_ms);
+    for v in &r.verdicts {
+        match *v {
+            Verdict::Found {
+                truth: ti,
+                position_error,
+                angle_error,
+                predicted_std_px,
+            } => {
+                if let Some(b) = truth.get(ti).and_then(|t| t.position_bound) {
+                    match b.kind {
+                        BoundKind::CramerRao => &mut r.bounded_errors,
+                        BoundKind::JpegModel => &mut r.jpeg_modelled_errors,
+                    }
+                    .push((position_error, b.px));
+                    if let Some(k) = b.known_shape {
+                        r.known_shape_errors.push((k, b.px));
+                    }
+                }
+                r.found += 1;
+                r.position_errors.push(position_error);
+                r.angle_errors.push(angle_error);
+                if predicted_std_px.is_finite() && predicted_std_px > 0.0 {
+                    r.normalised_errors.push(position_error / predicted_std_px);
+                }
+            }
+            Verdict::WrongId { .. } => r.wrong_id += 1,
+            Verdict::Ignored { .. } => {}
+            Verdict::False => r.false_markers += 1,
+        }
+    }
+    r.missed = markers - r.found - r.wrong_id;
+    r
+}
+
+/// A result of `markers` expected markers with `verdicts` and nothing counted yet.
+fn empty_result(markers: usize, verdicts: Vec<Verdict>, detect_ms: f64) -> SceneResult {
+    SceneResult {
+        markers,
+        found: 0,
+        wrong_id: 0,
+        false_markers: 0,
+        missed: 0,
+        position_errors: Vec::new(),
+        angle_errors: Vec::new(),
+        normalised_errors: Vec::new(),
+        bounded_errors: Vec::new(),
+        jpeg_modelled_errors: Vec::new(),
+        known_shape_errors: Vec::new(),
+        verdicts,
+        error: None,
+        detect_ms,
+    }
+}
+
+/// The verdict on each detection: matched one to one with the scene's truth markers of its
+/// family within [`match_radius`], nearest pairs first.
+fn match_verdicts(scene: &Scene, detections: &[MarkerPose]) -> Vec<Verdict> {
+    let truth = &scene.truth;
     // Candidate pairs within the match radius, nearest first.
     let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
     for (di, d) in detections.iter().enumerate() {
@@ -173,52 +220,5 @@ pub fn evaluate(
             Verdict::WrongId { truth: ti }
         };
     }
-    let mut r = SceneResult {
-        markers,
-        found: 0,
-        wrong_id: 0,
-        false_markers: 0,
-        missed: 0,
-        position_errors: Vec::new(),
-        angle_errors: Vec::new(),
-        normalised_errors: Vec::new(),
-        bounded_errors: Vec::new(),
-        jpeg_modelled_errors: Vec::new(),
-        known_shape_errors: Vec::new(),
-        verdicts,
-        error: None,
-        detect_ms,
-    };
-    for v in &r.verdicts {
-        match *v {
-            Verdict::Found {
-                truth: ti,
-                position_error,
-                angle_error,
-                predicted_std_px,
-            } => {
-                if let Some(b) = truth.get(ti).and_then(|t| t.position_bound) {
-                    match b.kind {
-                        BoundKind::CramerRao => &mut r.bounded_errors,
-                        BoundKind::JpegModel => &mut r.jpeg_modelled_errors,
-                    }
-                    .push((position_error, b.px));
-                    if let Some(k) = b.known_shape {
-                        r.known_shape_errors.push((k, b.px));
-                    }
-                }
-                r.found += 1;
-                r.position_errors.push(position_error);
-                r.angle_errors.push(angle_error);
-                if predicted_std_px.is_finite() && predicted_std_px > 0.0 {
-                    r.normalised_errors.push(position_error / predicted_std_px);
-                }
-            }
-            Verdict::WrongId { .. } => r.wrong_id += 1,
-            Verdict::Ignored { .. } => {}
-            Verdict::False => r.false_markers += 1,
-        }
-    }
-    r.missed = markers - r.found - r.wrong_id;
-    r
+    verdicts
 }

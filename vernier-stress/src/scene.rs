@@ -221,6 +221,39 @@ impl Layout {
             && self.inside(rect.center, 0.0)
     }
 
+    /// One try at placing a `kind` marker of half side `half_side` pixels at a random
+    /// angle and position, `gap` clear of everything placed; `None` where it does not fit.
+    fn try_place(
+        &self,
+        kind: MarkerKind,
+        half_side: f64,
+        pixel_size: f64,
+        gap: f64,
+        rng: &mut SmallRng,
+    ) -> Option<Placed> {
+        let (width, height, margin) = (self.width, self.height, self.margin);
+        let alpha = rng.random_range(-PI..PI);
+        let rect = OrientedRect::square(Vector2::zeros(), half_side, alpha);
+        let bh = rect.bounding_half() + Vector2::repeat(margin);
+        if 2.0 * bh.x > width as f64 - 1.0 || 2.0 * bh.y > height as f64 - 1.0 {
+            return None;
+        }
+        let origin = Vector2::new(
+            rng.random_range(bh.x..width as f64 - 1.0 - bh.x),
+            rng.random_range(bh.y..height as f64 - 1.0 - bh.y),
+        );
+        let m = Placed {
+            kind,
+            origin,
+            alpha,
+            pixel_size,
+            mirrored: false,
+            expectation: Expectation::Expected,
+        };
+        let fp = m.footprint();
+        (self.fits(&fp, margin) && self.is_free(&fp, gap)).then_some(m)
+    }
+
     /// True when `rect` keeps `clearance` from every marker and clutter item.
     fn is_free(&self, rect: &OrientedRect, clearance: f64) -> bool {
         let r = rect.expanded(clearance);
@@ -273,12 +306,7 @@ impl Generator {
     pub fn generate(&self, seed: u64) -> Result<Scene> {
         let spec = SceneSpec::from_seed(seed);
         let mut rng = SmallRng::seed_from_u64(seed ^ 0x7374_7265_7373_2d31);
-        let mut timings = Vec::new();
-        let mut clock = Instant::now();
-        let mut lap = |name: &'static str, timings: &mut Vec<(&'static str, f64)>| {
-            timings.push((name, clock.elapsed().as_secs_f64() * 1e3));
-            clock = Instant::now();
-        };
+        let mut laps = Laps::start();
         let kinds = spec.category.degradations(&mut rng);
         let mut deg = Degradations::draw(&kinds, &mut rng);
         let polarity = if rng.random_bool(0.5) {
@@ -300,9 +328,63 @@ impl Generator {
         if deg.clutter {
             self.place_clutter(&spec, code_size, &mut layout, &deg, &mut rng, &mut notes);
         }
-        lap("placement", &mut timings);
+        laps.lap("placement");
 
-        // Coverage of the marker plane: markers, then clutter, all through the same optics.
+        let coverage = self.coverage(&layout, &deg, &mut laps)?;
+        let (bg, fg) = grey_levels(&mut deg, polarity, &mut rng, &mut notes);
+        let (bgf, fgf) = (bg as f32, fg as f32);
+        let mut plane = Plane {
+            width: coverage.width,
+            height: coverage.height,
+            data: coverage
+                .data
+                .iter()
+                .map(|&c| bgf + (fgf - bgf) * c.clamp(0.0, 1.0))
+                .collect(),
+        };
+        if deg.dust_hair {
+            self.dust_and_hair(&layout, &deg, &mut plane, &mut rng, &mut notes);
+            laps.lap("dust_hair");
+        }
+        if !layout.homography.is_identity() {
+            plane = warp(&plane, &layout.homography, 3, bgf);
+            laps.lap("perspective");
+        }
+        let gain = deg.illumination.map(|illum| {
+            let gain = illumination_gain(plane.width, plane.height, &illum);
+            apply_gain(&mut plane, &gain);
+            laps.lap("illumination");
+            gain
+        });
+        let image = finish(&plane, &deg, &mut rng)?;
+        laps.lap("sensor");
+        let formation = bound::Formation {
+            clean: &plane,
+            gain: gain.as_ref(),
+            contrast: fg - bg,
+            blur_sigma: deg.blur_sigma,
+            noise: deg.noise,
+            jpeg_quality: deg.jpeg_quality,
+            observed: Some(&image),
+        };
+        let bounds = self.position_bounds(&spec, &layout, &deg, &formation)?;
+        if bounds.iter().any(Option::is_some) {
+            laps.lap("bound");
+        }
+        Ok(Scene {
+            spec,
+            image,
+            truth: truth_markers(&layout, bounds)?,
+            polarity,
+            code_size,
+            degradations: deg,
+            notes,
+            timings: laps.timings,
+        })
+    }
+
+    /// Coverage of the marker plane: markers, then clutter, all through the same optics.
+    fn coverage(&self, layout: &Layout, deg: &Degradations, laps: &mut Laps) -> Result<Plane> {
         let (w, h) = (layout.width, layout.height);
         let mut coverage = Plane::filled(w, h, 0.0);
         for m in &layout.markers {
@@ -317,7 +399,7 @@ impl Generator {
                 m.mirrored,
             )?;
         }
-        lap("render", &mut timings);
+        laps.lap("render");
         if !layout.clutter.is_empty() {
             let mut clutter = Plane::filled(w, h, 0.0);
             for c in &layout.clutter {
@@ -327,98 +409,9 @@ impl Generator {
             for (v, c) in coverage.data.iter_mut().zip(&clutter.data) {
                 *v += c;
             }
-            lap("clutter", &mut timings);
+            laps.lap("clutter");
         }
-
-        // Grey levels.
-        let bright = polarity == Polarity::BrightDots;
-        let (bg, fg): (f64, f64) = if deg.low_contrast {
-            let c = rng.random_range(0.10..0.20);
-            let bg = rng.random_range(0.0..1.0 - c);
-            if bright {
-                (bg, bg + c)
-            } else {
-                (bg + c, bg)
-            }
-        } else if bright {
-            (rng.random_range(0.02..0.25), rng.random_range(0.65..0.95))
-        } else {
-            (rng.random_range(0.65..0.95), rng.random_range(0.03..0.3))
-        };
-        notes.push(format!("background {bg:.3}, dots {fg:.3}"));
-        // Combined degradations stay measurable: the noise is capped so that the dot contrast
-        // at the dimmest point is ≥ 5 σ (never binds for the noise category alone).
-        if let Some(noise) = deg.noise.as_mut() {
-            let gain = deg.illumination.map_or(1.0, |i| i.min_gain);
-            let limit = (fg - bg).abs() * gain / 5.0;
-            let sigma = noise.gaussian + noise.shot * bg.max(fg).sqrt();
-            if sigma > limit {
-                noise.gaussian *= limit / sigma;
-                noise.shot *= limit / sigma;
-            }
-        }
-        let (bgf, fgf) = (bg as f32, fg as f32);
-        let mut plane = Plane {
-            width: w,
-            height: h,
-            data: coverage
-                .data
-                .iter()
-                .map(|&c| bgf + (fgf - bgf) * c.clamp(0.0, 1.0))
-                .collect(),
-        };
-        if deg.dust_hair {
-            self.dust_and_hair(&layout, &deg, &mut plane, &mut rng, &mut notes);
-            lap("dust_hair", &mut timings);
-        }
-        if !layout.homography.is_identity() {
-            plane = warp(&plane, &layout.homography, 3, bgf);
-            lap("perspective", &mut timings);
-        }
-        let gain = deg.illumination.map(|illum| {
-            let gain = illumination_gain(plane.width, plane.height, &illum);
-            apply_gain(&mut plane, &gain);
-            lap("illumination", &mut timings);
-            gain
-        });
-        let image = finish(&plane, &deg, &mut rng)?;
-        lap("sensor", &mut timings);
-        let formation = bound::Formation {
-            clean: &plane,
-            gain: gain.as_ref(),
-            contrast: fg - bg,
-            blur_sigma: deg.blur_sigma,
-            noise: deg.noise,
-            jpeg_quality: deg.jpeg_quality,
-            observed: Some(&image),
-        };
-        let bounds = self.position_bounds(&spec, &layout, &deg, &formation)?;
-        if bounds.iter().any(Option::is_some) {
-            lap("bound", &mut timings);
-        }
-        let truth = layout
-            .markers
-            .iter()
-            .zip(bounds)
-            .map(|(m, bound)| {
-                m.truth(&layout.homography)
-                    .map(|t| TruthMarker {
-                        position_bound: bound,
-                        ..t
-                    })
-                    .ok_or_else(|| StressError::new("marker beyond the horizon"))
-            })
-            .collect::<Result<Vec<_>>>()?;
-        Ok(Scene {
-            spec,
-            image,
-            truth,
-            polarity,
-            code_size,
-            degradations: deg,
-            notes,
-            timings,
-        })
+        Ok(coverage)
     }
 
     /// The position bound of each expected marker of the scene's family, where the scene
@@ -462,24 +455,7 @@ impl Generator {
         // Image size from the first scale drawn: the markers may nearly fill the frame.
         let side = cells * period_px / 2.0;
         let need = side * SQRT_2 + 2.0 * margin;
-        let packing = [1.0, 1.75, 2.1][count - 1];
-        let extra = if deg.clutter {
-            rng.random_range(1.3..2.0)
-        } else {
-            rng.random_range(1.0..1.6)
-        };
-        let aspect = rng.random_range(1.0..1.4);
-        let base = need * packing * extra;
-        let (fw, fh) = if rng.random_bool(0.5) {
-            (base * aspect, base)
-        } else {
-            (base, base * aspect)
-        };
-        let clamp_side = |v: f64| (v.round() as usize).clamp(96, MAX_SIDE);
-        let (width, height) = (
-            clamp_side(fw.max(need + 1.0)),
-            clamp_side(fh.max(need + 1.0)),
-        );
+        let (width, height) = frame_size(need, count, deg.clutter, rng);
         let homography = match deg.perspective {
             Some(t) => {
                 let diag = (width as f64).hypot(height as f64);
@@ -513,29 +489,9 @@ impl Generator {
                         index: rng.random_range(0..self.stamps.layouts.len()),
                     },
                 };
-                let placed = (0..400).find_map(|_| {
-                    let alpha = rng.random_range(-PI..PI);
-                    let rect =
-                        OrientedRect::square(Vector2::zeros(), cells * period_px / 2.0, alpha);
-                    let bh = rect.bounding_half() + Vector2::repeat(margin);
-                    if 2.0 * bh.x > width as f64 - 1.0 || 2.0 * bh.y > height as f64 - 1.0 {
-                        return None;
-                    }
-                    let origin = Vector2::new(
-                        rng.random_range(bh.x..width as f64 - 1.0 - bh.x),
-                        rng.random_range(bh.y..height as f64 - 1.0 - bh.y),
-                    );
-                    let m = Placed {
-                        kind,
-                        origin,
-                        alpha,
-                        pixel_size,
-                        mirrored: false,
-                        expectation: Expectation::Expected,
-                    };
-                    let fp = m.footprint();
-                    (layout.fits(&fp, margin) && layout.is_free(&fp, gap)).then_some(m)
-                });
+                let half_side = cells * period_px / 2.0;
+                let placed =
+                    (0..400).find_map(|_| layout.try_place(kind, half_side, pixel_size, gap, rng));
                 match placed {
                     Some(m) => {
                         let mirrored = matches!(m.kind, MarkerKind::HpCode { id, .. } if id != 0)
@@ -579,75 +535,9 @@ impl Generator {
         for _ in 0..n {
             if rng.random_bool(0.3) {
                 // Another marker.
-                let (kind, mut p_px) = match (spec.family, code_size) {
-                    (Family::HpCode, Some(w0)) if rng.random_bool(0.5) => {
-                        let w1 = if w0 == 33 { 37 } else { 33 };
-                        let id = rng.random_range(0..1u64 << ((w1 - 15) / 2));
-                        (MarkerKind::HpCode { code_size: w1, id }, period_px)
-                    }
-                    (Family::HpCode, _) => (
-                        MarkerKind::Stamp {
-                            index: rng.random_range(0..self.stamps.layouts.len()),
-                        },
-                        log_uniform(rng, 4.0, 12.0),
-                    ),
-                    (Family::Stamp, _) => {
-                        let w1 = [33, 37][rng.random_range(0..2)];
-                        let id = rng.random_range(0..1u64 << ((w1 - 15) / 2));
-                        (
-                            MarkerKind::HpCode { code_size: w1, id },
-                            log_uniform(rng, 4.0, 40.0),
-                        )
-                    }
-                };
-                let cut = rng.random_bool(0.3);
-                let mut placed = None;
-                for attempt in 0..120 {
-                    if attempt % 30 == 29 {
-                        p_px = (p_px * 0.8).max(4.0);
-                    }
-                    let side = kind.cells() as f64 * p_px / 2.0;
-                    let origin = if cut {
-                        Vector2::new(
-                            rng.random_range(-side / 3.0..w + side / 3.0),
-                            rng.random_range(-side / 3.0..h + side / 3.0),
-                        )
-                    } else {
-                        Vector2::new(rng.random_range(0.0..w), rng.random_range(0.0..h))
-                    };
-                    let m = Placed {
-                        kind,
-                        origin,
-                        alpha: rng.random_range(-PI..PI),
-                        pixel_size: PERIOD / p_px,
-                        mirrored: false,
-                        expectation: Expectation::Expected,
-                    };
-                    let fp = m.footprint();
-                    let whole = layout.fits(&fp, layout.margin);
-                    let ok_place = if cut {
-                        !whole && layout.visible(&fp)
-                    } else {
-                        whole
-                    };
-                    if ok_place && layout.is_free(&fp, clearance.max(2.0 * p_px)) {
-                        placed = Some(m);
-                        break;
-                    }
-                }
-                if let Some(mut m) = placed {
-                    m.expectation = match (m.kind.family() == spec.family, cut) {
-                        (true, false) => Expectation::Expected,
-                        (true, true) => Expectation::Ignored,
-                        (false, _) => Expectation::Foreign,
-                    };
-                    names.push(format!(
-                        "{} marker ({}{})",
-                        m.kind.family().name(),
-                        m.expectation.name(),
-                        if cut { ", cut by the border" } else { "" }
-                    ));
-                    layout.markers.push(m);
+                let kind = self.other_marker_kind(spec, code_size, period_px, rng);
+                if let Some(name) = place_other_marker(spec, kind, layout, clearance, rng) {
+                    names.push(name);
                 }
             } else {
                 let placed = (0..100).find_map(|_| {
@@ -662,6 +552,38 @@ impl Generator {
             }
         }
         notes.push(format!("clutter: {}", names.join(", ")));
+    }
+
+    /// Draws the kind and pixel period of a clutter marker: the other HP code size (at the
+    /// scene's period) or the other family than the scene's.
+    fn other_marker_kind(
+        &self,
+        spec: &SceneSpec,
+        code_size: Option<usize>,
+        period_px: f64,
+        rng: &mut SmallRng,
+    ) -> (MarkerKind, f64) {
+        match (spec.family, code_size) {
+            (Family::HpCode, Some(w0)) if rng.random_bool(0.5) => {
+                let w1 = if w0 == 33 { 37 } else { 33 };
+                let id = rng.random_range(0..1u64 << ((w1 - 15) / 2));
+                (MarkerKind::HpCode { code_size: w1, id }, period_px)
+            }
+            (Family::HpCode, _) => (
+                MarkerKind::Stamp {
+                    index: rng.random_range(0..self.stamps.layouts.len()),
+                },
+                log_uniform(rng, 4.0, 12.0),
+            ),
+            (Family::Stamp, _) => {
+                let w1 = [33, 37][rng.random_range(0..2)];
+                let id = rng.random_range(0..1u64 << ((w1 - 15) / 2));
+                (
+                    MarkerKind::HpCode { code_size: w1, id },
+                    log_uniform(rng, 4.0, 40.0),
+                )
+            }
+        }
     }
 
     /// Dust blobs (2–8, dark or bright, half of them over a marker) and 1–2 dark hairs
@@ -679,66 +601,9 @@ impl Generator {
         let (w, h) = (plane.width, plane.height);
         let markers = &layout.markers;
         let mut touched = vec![0u32; markers.len()];
-        // Accepts a set of discs if every marker keeps its constraints; updates `touched`.
-        let accept = |discs: &[(Vector2<f64>, f64)], is_hair: bool, touched: &mut Vec<u32>| {
-            let mut next = touched.clone();
-            for (i, m) in markers.iter().enumerate() {
-                for &(p, r) in discs {
-                    let (mask, id) = m.touches(p, r);
-                    if id {
-                        return false;
-                    }
-                    next[i] |= mask;
-                }
-                let exempt = is_hair && m.kind.family() == Family::Stamp;
-                if !exempt && next[i].count_ones() > 1 {
-                    return false;
-                }
-            }
-            *touched = next;
-            true
-        };
         let mut dark = Plane::filled(w, h, 0.0);
         let mut light = Plane::filled(w, h, 0.0);
-        let n_dust = rng.random_range(2..=8);
-        let mut over = 0;
-        for _ in 0..n_dust {
-            let target = (rng.random_bool(0.5) && !markers.is_empty())
-                .then(|| markers[rng.random_range(0..markers.len())]);
-            let soft = rng.random_range(0.5..3.0);
-            for _ in 0..60 {
-                let (center, radius) = match target {
-                    Some(m) => {
-                        let s = m.side_px() / 2.0;
-                        let local = Vector2::new(rng.random_range(-s..s), rng.random_range(-s..s));
-                        (
-                            m.origin + rotate(local, m.alpha),
-                            (rng.random_range(0.3..1.2) * m.period_px()).max(1.5),
-                        )
-                    }
-                    None => (
-                        Vector2::new(
-                            rng.random_range(0.0..w as f64),
-                            rng.random_range(0.0..h as f64),
-                        ),
-                        rng.random_range(
-                            1.5..(3.0 * markers.first().map_or(4.0, |m| m.period_px())).max(3.0),
-                        ),
-                    ),
-                };
-                if accept(&[(center, radius + soft)], false, &mut touched) {
-                    let opacity = rng.random_range(0.5..1.0f32);
-                    let into = if rng.random_bool(0.6) {
-                        &mut dark
-                    } else {
-                        &mut light
-                    };
-                    into.draw_disc(center, radius, soft, opacity);
-                    over += usize::from(target.is_some());
-                    break;
-                }
-            }
-        }
+        let (n_dust, over) = draw_dust(markers, &mut touched, (&mut dark, &mut light), rng);
         let mut hairs = 0;
         let n_hair = if rng.random_bool(0.8) { 1 } else { 2 };
         let candidates: Vec<&Placed> = markers
@@ -751,28 +616,10 @@ impl Generator {
             };
             let half_width = (rng.random_range(0.1..0.25) * m.period_px()).max(0.75);
             for _ in 0..200 {
-                let side = m.side_px();
-                let reach = side * rng.random_range(0.8..1.5);
-                let t0: f64 = rng.random_range(0.0..TAU);
-                let t2 = t0 + PI + rng.random_range(-1.0..1.0);
-                let dir = |t: f64| Vector2::new(t.cos(), t.sin());
-                let p0 = m.origin + dir(t0) * reach;
-                let p2 = m.origin + dir(t2) * reach;
-                let p1 = m.origin
-                    + Vector2::new(
-                        rng.random_range(-0.4..0.4) * side,
-                        rng.random_range(-0.4..0.4) * side,
-                    );
-                let steps = ((2.0 * reach + side) / 0.5).ceil() as usize;
-                let curve: Vec<Vector2<f64>> = (0..=steps)
-                    .map(|i| {
-                        let t = i as f64 / steps as f64;
-                        p0 * (1.0 - t).powi(2) + p1 * (2.0 * t * (1.0 - t)) + p2 * t * t
-                    })
-                    .collect();
+                let curve = random_hair(m, rng);
                 let discs: Vec<(Vector2<f64>, f64)> =
                     curve.iter().map(|&p| (p, half_width + 1.0)).collect();
-                if accept(&discs, true, &mut touched) {
+                if accept_discs(markers, &discs, true, &mut touched) {
                     let opacity = rng.random_range(0.7..1.0f32);
                     for pair in curve.windows(2) {
                         dark.draw_segment(pair[0], pair[1], half_width, opacity);
@@ -790,4 +637,266 @@ impl Generator {
             "dust: {n_dust} blobs tried, {over} over markers; hairs crossing a marker: {hairs}"
         ));
     }
+}
+
+/// The truth of each marker of `layout` in the image, with its position bound.
+fn truth_markers(layout: &Layout, bounds: Vec<Option<PositionBound>>) -> Result<Vec<TruthMarker>> {
+    layout
+        .markers
+        .iter()
+        .zip(bounds)
+        .map(|(m, bound)| {
+            m.truth(&layout.homography)
+                .map(|t| TruthMarker {
+                    position_bound: bound,
+                    ..t
+                })
+                .ok_or_else(|| StressError::new("marker beyond the horizon"))
+        })
+        .collect()
+}
+
+/// Image size for `count` markers needing `need` pixels each (more room with `clutter`),
+/// random aspect and orientation.
+fn frame_size(need: f64, count: usize, clutter: bool, rng: &mut SmallRng) -> (usize, usize) {
+    let packing = [1.0, 1.75, 2.1][count - 1];
+    let extra = if clutter {
+        rng.random_range(1.3..2.0)
+    } else {
+        rng.random_range(1.0..1.6)
+    };
+    let aspect = rng.random_range(1.0..1.4);
+    let base = need * packing * extra;
+    let (fw, fh) = if rng.random_bool(0.5) {
+        (base * aspect, base)
+    } else {
+        (base, base * aspect)
+    };
+    let clamp_side = |v: f64| (v.round() as usize).clamp(96, MAX_SIDE);
+    (
+        clamp_side(fw.max(need + 1.0)),
+        clamp_side(fh.max(need + 1.0)),
+    )
+}
+
+/// Places one clutter marker `(kind, pixel period)` (cut by the border three times in ten),
+/// `clearance` from everything, shrinking it every 30 tries; returns its note, or `None`
+/// when there is no room.
+fn place_other_marker(
+    spec: &SceneSpec,
+    (kind, mut p_px): (MarkerKind, f64),
+    layout: &mut Layout,
+    clearance: f64,
+    rng: &mut SmallRng,
+) -> Option<String> {
+    let (w, h) = (layout.width as f64, layout.height as f64);
+    let cut = rng.random_bool(0.3);
+    let mut placed = None;
+    for attempt in 0..120 {
+        if attempt % 30 == 29 {
+            p_px = (p_px * 0.8).max(4.0);
+        }
+        let side = kind.cells() as f64 * p_px / 2.0;
+        let origin = if cut {
+            Vector2::new(
+                rng.random_range(-side / 3.0..w + side / 3.0),
+                rng.random_range(-side / 3.0..h + side / 3.0),
+            )
+        } else {
+            Vector2::new(rng.random_range(0.0..w), rng.random_range(0.0..h))
+        };
+        let m = Placed {
+            kind,
+            origin,
+            alpha: rng.random_range(-PI..PI),
+            pixel_size: PERIOD / p_px,
+            mirrored: false,
+            expectation: Expectation::Expected,
+        };
+        let fp = m.footprint();
+        let whole = layout.fits(&fp, layout.margin);
+        let ok_place = if cut {
+            !whole && layout.visible(&fp)
+        } else {
+            whole
+        };
+        if ok_place && layout.is_free(&fp, clearance.max(2.0 * p_px)) {
+            placed = Some(m);
+            break;
+        }
+    }
+    let mut m = placed?;
+    m.expectation = match (m.kind.family() == spec.family, cut) {
+        (true, false) => Expectation::Expected,
+        (true, true) => Expectation::Ignored,
+        (false, _) => Expectation::Foreign,
+    };
+    let name = format!(
+        "{} marker ({}{})",
+        m.kind.family().name(),
+        m.expectation.name(),
+        if cut { ", cut by the border" } else { "" }
+    );
+    layout.markers.push(m);
+    Some(name)
+}
+
+/// Accepts a set of discs `(centre, radius)` if every marker keeps its constraints (no ID
+/// strip touched, at most one finder or frame side, a hair exempt on stamps); updates
+/// `touched`.
+fn accept_discs(
+    markers: &[Placed],
+    discs: &[(Vector2<f64>, f64)],
+    is_hair: bool,
+    touched: &mut Vec<u32>,
+) -> bool {
+    let mut next = touched.clone();
+    for (i, m) in markers.iter().enumerate() {
+        for &(p, r) in discs {
+            let (mask, id) = m.touches(p, r);
+            if id {
+                return false;
+            }
+            next[i] |= mask;
+        }
+        let exempt = is_hair && m.kind.family() == Family::Stamp;
+        if !exempt && next[i].count_ones() > 1 {
+            return false;
+        }
+    }
+    *touched = next;
+    true
+}
+
+/// Draws 2–8 dust blobs into the `(dark, light)` planes, half of them aimed at a marker;
+/// returns how many were tried and how many landed over a marker.
+fn draw_dust(
+    markers: &[Placed],
+    touched: &mut Vec<u32>,
+    (dark, light): (&mut Plane, &mut Plane),
+    rng: &mut SmallRng,
+) -> (i32, usize) {
+    let (w, h) = (dark.width, dark.height);
+    let n_dust: i32 = rng.random_range(2..=8);
+    let mut over = 0;
+    for _ in 0..n_dust {
+        let target = (rng.random_bool(0.5) && !markers.is_empty())
+            .then(|| markers[rng.random_range(0..markers.len())]);
+        let soft = rng.random_range(0.5..3.0);
+        for _ in 0..60 {
+            let (center, radius) = match target {
+                Some(m) => {
+                    let s = m.side_px() / 2.0;
+                    let local = Vector2::new(rng.random_range(-s..s), rng.random_range(-s..s));
+                    (
+                        m.origin + rotate(local, m.alpha),
+                        (rng.random_range(0.3..1.2) * m.period_px()).max(1.5),
+                    )
+                }
+                None => (
+                    Vector2::new(
+                        rng.random_range(0.0..w as f64),
+                        rng.random_range(0.0..h as f64),
+                    ),
+                    rng.random_range(
+                        1.5..(3.0 * markers.first().map_or(4.0, |m| m.period_px())).max(3.0),
+                    ),
+                ),
+            };
+            if accept_discs(markers, &[(center, radius + soft)], false, touched) {
+                let opacity = rng.random_range(0.5..1.0f32);
+                let into = if rng.random_bool(0.6) {
+                    &mut *dark
+                } else {
+                    &mut *light
+                };
+                into.draw_disc(center, radius, soft, opacity);
+                over += usize::from(target.is_some());
+                break;
+            }
+        }
+    }
+    (n_dust, over)
+}
+
+/// A random hair across marker `m`: a quadratic Bézier curve sampled every half pixel.
+fn random_hair(m: &Placed, rng: &mut SmallRng) -> Vec<Vector2<f64>> {
+    let side = m.side_px();
+    let reach = side * rng.random_range(0.8..1.5);
+    let t0: f64 = rng.random_range(0.0..TAU);
+    let t2 = t0 + PI + rng.random_range(-1.0..1.0);
+    let dir = |t: f64| Vector2::new(t.cos(), t.sin());
+    let p0 = m.origin + dir(t0) * reach;
+    let p2 = m.origin + dir(t2) * reach;
+    let p1 = m.origin
+        + Vector2::new(
+            rng.random_range(-0.4..0.4) * side,
+            rng.random_range(-0.4..0.4) * side,
+        );
+    let steps = ((2.0 * reach + side) / 0.5).ceil() as usize;
+    (0..=steps)
+        .map(|i| {
+            let t = i as f64 / steps as f64;
+            p0 * (1.0 - t).powi(2) + p1 * (2.0 * t * (1.0 - t)) + p2 * t * t
+        })
+        .collect()
+}
+
+/// Wall time of each stage of a scene's generation, milliseconds.
+struct Laps {
+    clock: Instant,
+    timings: Vec<(&'static str, f64)>,
+}
+
+impl Laps {
+    fn start() -> Laps {
+        Laps {
+            clock: Instant::now(),
+            timings: Vec::new(),
+        }
+    }
+
+    /// Records the time since the last lap as stage `name`.
+    fn lap(&mut self, name: &'static str) {
+        self.timings
+            .push((name, self.clock.elapsed().as_secs_f64() * 1e3));
+        self.clock = Instant::now();
+    }
+}
+
+/// Background and dot grey levels `(bg, fg)` for `polarity` (drawn from `rng`, noted in
+/// `notes`); caps `deg`'s noise so that the dimmest dot contrast stays ≥ 5 σ.
+fn grey_levels(
+    deg: &mut Degradations,
+    polarity: Polarity,
+    rng: &mut SmallRng,
+    notes: &mut Vec<String>,
+) -> (f64, f64) {
+    let bright = polarity == Polarity::BrightDots;
+    let (bg, fg): (f64, f64) = if deg.low_contrast {
+        let c = rng.random_range(0.10..0.20);
+        let bg = rng.random_range(0.0..1.0 - c);
+        if bright {
+            (bg, bg + c)
+        } else {
+            (bg + c, bg)
+        }
+    } else if bright {
+        (rng.random_range(0.02..0.25), rng.random_range(0.65..0.95))
+    } else {
+        (rng.random_range(0.65..0.95), rng.random_range(0.03..0.3))
+    };
+    notes.push(format!("background {bg:.3}, dots {fg:.3}"));
+    // Combined degradations stay measurable: the noise is capped so that the dot contrast
+    // at the dimmest point is ≥ 5 σ (never binds for the noise category alone).
+    if let Some(noise) = deg.noise.as_mut() {
+        let gain = deg.illumination.map_or(1.0, |i| i.min_gain);
+        let limit = (fg - bg).abs() * gain / 5.0;
+        let sigma = noise.gaussian + noise.shot * bg.max(fg).sqrt();
+        if sigma > limit {
+            noise.gaussian *= limit / sigma;
+            noise.shot *= limit / sigma;
+        }
+    }
+    (bg, fg)
 }

@@ -110,23 +110,34 @@ fn main() {
                 markers
             );
             if size.is_none() && threads == 0 && field_fit {
-                // Tracking: the markers measured again from their last positions, no search.
-                let previous = detector.detect(image).unwrap_or_default();
-                let predicted: Vec<_> = previous.iter().map(|m| m.origin_px).collect();
-                let tracked_ms = time(runs, || {
-                    std::hint::black_box(detector.track(image, &previous, &predicted).ok());
-                });
-                println!(
-                    "{:<22} {:>10} {:>14.2} {:>10.2} {:>12.0} {:>8.1}x {:>8}",
-                    format!("{name} / tracking"),
-                    "-",
-                    tracked_ms / previous.len().max(1) as f64,
-                    tracked_ms,
-                    original_ms,
-                    original_ms / tracked_ms,
-                    previous.len()
-                );
+                print_tracking(&mut detector, image, name, original_ms, runs);
             }
         }
     }
+}
+
+/// Tracking: the markers of `image` measured again from their last positions, no search;
+/// prints the row `name / tracking`.
+fn print_tracking(
+    detector: &mut HpCodeDetector,
+    image: &GreyImage,
+    name: &str,
+    original_ms: f64,
+    runs: usize,
+) {
+    let previous = detector.detect(image).unwrap_or_default();
+    let predicted: Vec<_> = previous.iter().map(|m| m.origin_px).collect();
+    let tracked_ms = time(runs, || {
+        std::hint::black_box(detector.track(image, &previous, &predicted).ok());
+    });
+    println!(
+        "{:<22} {:>10} {:>14.2} {:>10.2} {:>12.0} {:>8.1}x {:>8}",
+        format!("{name} / tracking"),
+        "-",
+        tracked_ms / previous.len().max(1) as f64,
+        tracked_ms,
+        original_ms,
+        original_ms / tracked_ms,
+        previous.len()
+    );
 }

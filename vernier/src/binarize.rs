@@ -877,6 +877,13 @@ mod tests {
                 regions[g].parent = Some(region_of[first_pixel[g] - w]);
             }
         }
+        fill_holes(&mut regions, sums);
+        regions
+    }
+
+    /// Filled area and centroid of each region: its own pixel sums `[n, Σx, Σy]` plus those
+    /// of the regions it encloses (children come after their parents).
+    fn fill_holes(regions: &mut [Region], mut sums: Vec<[f64; 3]>) {
         for g in (0..regions.len()).rev() {
             let s = sums[g];
             regions[g].filled_area = s[0];
@@ -887,7 +894,6 @@ mod tests {
                 }
             }
         }
-        regions
     }
 
     #[test]

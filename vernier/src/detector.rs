@@ -271,77 +271,101 @@ impl DetectorSettings {
                 .as_ref()
                 .map(|p| crate::layout::Layout::period(p.layout()))
         });
-        let require_period = || {
-            period.ok_or_else(|| Error::parameter("period", "required (give it or a pattern file)"))
-        };
+        let pattern = pattern.as_ref();
         match kind {
             MarkerKind::Periodic => {
-                let mut p = PeriodicParams::new(require_period()?);
+                let mut p = PeriodicParams::new(required_period(period)?);
                 p.polarity = self.polarity.unwrap_or_default();
                 p.field_fit = self.field_fit.unwrap_or(false);
                 Ok(DetectorConfig::Periodic(p))
             }
-            MarkerKind::Megarena => {
-                // An explicit code depth wins over the pattern file's sequence.
-                let sequence = match (self.code_depth, &pattern) {
-                    (Some(depth), _) => LineSequence::generated(depth)
-                        .map_err(|e| Error::parameter("code_depth", e.to_string()))?,
-                    (None, Some(Pattern::Megarena(layout))) => layout.sequence().clone(),
-                    (None, _) => {
-                        return Err(Error::parameter(
-                            "code_depth",
-                            "required for Megarena patterns (give it or a pattern file)",
-                        ))
-                    }
-                };
-                let mut p = MegarenaParams::with_sequence(require_period()?, sequence);
-                p.polarity = self.polarity.unwrap_or_default();
-                p.pose_3d = self.pose_3d;
-                Ok(DetectorConfig::Megarena(p))
-            }
-            MarkerKind::HpCode => {
-                // W from the flag, else from an HPCodePattern file (`size` dots → 2·size − 1).
-                let code_size = match (self.code_size, &pattern) {
-                    (Some(w), _) => w,
-                    (None, Some(Pattern::HpCode(layout))) => layout.code_size(),
-                    (None, _) => {
-                        return Err(Error::parameter(
-                            "code_size",
-                            "required for HP codes: width in half periods, e.g. 33 or 37",
-                        ))
-                    }
-                };
-                let mut p = HpCodeParams::new(require_period()?, code_size);
-                p.window_size = self.window_size;
-                p.polarity = self.polarity;
-                p.field_fit = self.field_fit.unwrap_or(true);
-                p.validate()?;
-                Ok(DetectorConfig::HpCode(p))
-            }
-            MarkerKind::Stamp => {
-                // ID order: the pattern file's bitmap first, then the bitmap files.
-                let period = require_period()?;
-                let mut bitmaps = Vec::new();
-                if let Some(Pattern::Bitmap(layout)) = &pattern {
-                    bitmaps.push(layout.clone());
-                }
-                for path in &self.bitmaps {
-                    bitmaps.push(crate::layout::BitmapLayout::from_image_file(period, path)?);
-                }
-                if bitmaps.is_empty() {
-                    return Err(Error::parameter(
-                        "bitmaps",
-                        "stamp detection needs a bitmap (PNG file) or a BitmapPattern file",
-                    ));
-                }
-                let mut p = StampParams::new(period, bitmaps);
-                p.window_size = self.window_size;
-                p.polarity = self.polarity;
-                p.field_fit = self.field_fit.unwrap_or(true);
-                Ok(DetectorConfig::Stamp(p))
-            }
+            MarkerKind::Megarena => self.megarena_config(pattern, period),
+            MarkerKind::HpCode => self.hpcode_config(pattern, period),
+            MarkerKind::Stamp => self.stamp_config(pattern, period),
         }
     }
+
+    /// [`Self::to_config`] for a Megarena, `pattern` the pattern file read if any.
+    fn megarena_config(
+        &self,
+        pattern: Option<&Pattern>,
+        period: Option<f64>,
+    ) -> Result<DetectorConfig> {
+        // An explicit code depth wins over the pattern file's sequence.
+        let sequence = match (self.code_depth, pattern) {
+            (Some(depth), _) => LineSequence::generated(depth)
+                .map_err(|e| Error::parameter("code_depth", e.to_string()))?,
+            (None, Some(Pattern::Megarena(layout))) => layout.sequence().clone(),
+            (None, _) => {
+                return Err(Error::parameter(
+                    "code_depth",
+                    "required for Megarena patterns (give it or a pattern file)",
+                ))
+            }
+        };
+        let mut p = MegarenaParams::with_sequence(required_period(period)?, sequence);
+        p.polarity = self.polarity.unwrap_or_default();
+        p.pose_3d = self.pose_3d;
+        Ok(DetectorConfig::Megarena(p))
+    }
+
+    /// [`Self::to_config`] for an HP code, `pattern` the pattern file read if any.
+    fn hpcode_config(
+        &self,
+        pattern: Option<&Pattern>,
+        period: Option<f64>,
+    ) -> Result<DetectorConfig> {
+        // W from the flag, else from an HPCodePattern file (`size` dots → 2·size − 1).
+        let code_size = match (self.code_size, pattern) {
+            (Some(w), _) => w,
+            (None, Some(Pattern::HpCode(layout))) => layout.code_size(),
+            (None, _) => {
+                return Err(Error::parameter(
+                    "code_size",
+                    "required for HP codes: width in half periods, e.g. 33 or 37",
+                ))
+            }
+        };
+        let mut p = HpCodeParams::new(required_period(period)?, code_size);
+        p.window_size = self.window_size;
+        p.polarity = self.polarity;
+        p.field_fit = self.field_fit.unwrap_or(true);
+        p.validate()?;
+        Ok(DetectorConfig::HpCode(p))
+    }
+
+    /// [`Self::to_config`] for stamps, `pattern` the pattern file read if any.
+    fn stamp_config(
+        &self,
+        pattern: Option<&Pattern>,
+        period: Option<f64>,
+    ) -> Result<DetectorConfig> {
+        // ID order: the pattern file's bitmap first, then the bitmap files.
+        let period = required_period(period)?;
+        let mut bitmaps = Vec::new();
+        if let Some(Pattern::Bitmap(layout)) = pattern {
+            bitmaps.push(layout.clone());
+        }
+        for path in &self.bitmaps {
+            bitmaps.push(crate::layout::BitmapLayout::from_image_file(period, path)?);
+        }
+        if bitmaps.is_empty() {
+            return Err(Error::parameter(
+                "bitmaps",
+                "stamp detection needs a bitmap (PNG file) or a BitmapPattern file",
+            ));
+        }
+        let mut p = StampParams::new(period, bitmaps);
+        p.window_size = self.window_size;
+        p.polarity = self.polarity;
+        p.field_fit = self.field_fit.unwrap_or(true);
+        Ok(DetectorConfig::Stamp(p))
+    }
+}
+
+/// The period given or read from the pattern file, or the error that asks for it.
+fn required_period(period: Option<f64>) -> Result<f64> {
+    period.ok_or_else(|| Error::parameter("period", "required (give it or a pattern file)"))
 }
 
 /// Which detector to build, with its settings.

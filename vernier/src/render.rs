@@ -76,6 +76,48 @@ pub fn render(layout: &dyn Layout, pose: &Pose, options: &RenderOptions) -> Resu
 
 /// Renders several layouts, each at its own pose, into one image (coverages add, clamped to 1).
 pub fn render_scene(items: &[(&dyn Layout, Pose)], options: &RenderOptions) -> Result<GreyImage> {
+    check_options(options)?;
+    let (w, h) = (options.width, options.height);
+    // Optical blur acts before the pixels integrate light: render on a grid `SUPERSAMPLING`
+    // times finer, blur there, then bin back to pixels (box = pixel area).
+    let factor = if options.blur_sigma > 0.0 {
+        SUPERSAMPLING
+    } else {
+        1
+    };
+    let (fw, fh) = (w * factor, h * factor);
+    let mut coverage = vec![0.0f32; fw * fh];
+    for (layout, pose) in items {
+        check_period(*layout, pose)?;
+        // Same camera frame on the fine grid: centre pixel (C div 2, R div 2) maps to the centre
+        // of the fine cell block of that pixel.
+        let fine_pose = Pose {
+            pixel_size: pose.pixel_size / factor as f64,
+            ..*pose
+        };
+        // Pixel c spans fine cells c·f .. c·f + f − 1, its centre at c·f + (f − 1)/2.
+        let shift = |n: usize| {
+            ((n / 2) * factor) as f64 + (factor as f64 - 1.0) / 2.0 - ((n * factor) / 2) as f64
+        };
+        let center_shift = Vector2::new(shift(w), shift(h));
+        render_layout(
+            *layout,
+            &fine_pose,
+            (fw, fh),
+            center_shift,
+            options.sampling,
+            &mut coverage,
+        )?;
+    }
+    if factor > 1 {
+        gaussian_blur(&mut coverage, fw, fh, options.blur_sigma * factor as f64);
+        coverage = bin(&coverage, fw, factor, w, h);
+    }
+    finish_pixels(coverage, w, h, options)
+}
+
+/// Rejects a render size, bit depth, blur or noise outside the limits (the limit named).
+fn check_options(options: &RenderOptions) -> Result<()> {
     let (w, h) = (options.width, options.height);
     if w == 0 || h == 0 {
         return Err(Error::parameter(
@@ -134,54 +176,34 @@ pub fn render_scene(items: &[(&dyn Layout, Pose)], options: &RenderOptions) -> R
             ),
         ));
     }
-    // Optical blur acts before the pixels integrate light: render on a grid `SUPERSAMPLING`
-    // times finer, blur there, then bin back to pixels (box = pixel area).
-    let factor = if options.blur_sigma > 0.0 {
-        SUPERSAMPLING
-    } else {
-        1
-    };
-    let (fw, fh) = (w * factor, h * factor);
-    let mut coverage = vec![0.0f32; fw * fh];
-    for (layout, pose) in items {
-        // A period far below a pixel only aliases, and the number of dots to draw explodes.
-        let period_px = layout.period() / pose.pixel_size;
-        if period_px.is_nan() || period_px < limits::MIN_RENDER_PERIOD_PX {
-            return Err(Error::parameter(
-                "pixel_size",
-                format!(
-                    "the period ({} pattern units) is {period_px:e} pixels at pixel size {}: \
-                                     renders need at least {} pixels per period",
-                    layout.period(),
-                    pose.pixel_size,
-                    limits::MIN_RENDER_PERIOD_PX
-                ),
-            ));
-        }
-        // Same camera frame on the fine grid: centre pixel (C div 2, R div 2) maps to the centre
-        // of the fine cell block of that pixel.
-        let fine_pose = Pose {
-            pixel_size: pose.pixel_size / factor as f64,
-            ..*pose
-        };
-        // Pixel c spans fine cells c·f .. c·f + f − 1, its centre at c·f + (f − 1)/2.
-        let shift = |n: usize| {
-            ((n / 2) * factor) as f64 + (factor as f64 - 1.0) / 2.0 - ((n * factor) / 2) as f64
-        };
-        let center_shift = Vector2::new(shift(w), shift(h));
-        render_layout(
-            *layout,
-            &fine_pose,
-            (fw, fh),
-            center_shift,
-            options.sampling,
-            &mut coverage,
-        )?;
+    Ok(())
+}
+
+/// Rejects a pose whose period is below [`limits::MIN_RENDER_PERIOD_PX`] pixels.
+fn check_period(layout: &dyn Layout, pose: &Pose) -> Result<()> {
+    let period_px = layout.period() / pose.pixel_size;
+    if period_px.is_nan() || period_px < limits::MIN_RENDER_PERIOD_PX {
+        return Err(Error::parameter(
+            "pixel_size",
+            format!(
+                "the period ({} pattern units) is {period_px:e} pixels at pixel size {}: \
+                 renders need at least {} pixels per period",
+                layout.period(),
+                pose.pixel_size,
+                limits::MIN_RENDER_PERIOD_PX
+            ),
+        ));
     }
-    if factor > 1 {
-        gaussian_blur(&mut coverage, fw, fh, options.blur_sigma * factor as f64);
-        coverage = bin(&coverage, fw, factor, w, h);
-    }
+    Ok(())
+}
+
+/// The image from the coverage map: grey levels, then noise and quantisation if asked.
+fn finish_pixels(
+    coverage: Vec<f32>,
+    w: usize,
+    h: usize,
+    options: &RenderOptions,
+) -> Result<GreyImage> {
     let (bg, fg) = (options.background, options.foreground);
     let mut pixels: Vec<f32> = coverage
         .iter()
@@ -234,38 +256,7 @@ fn render_layout(
     sampling: Sampling,
     coverage: &mut [f32],
 ) -> Result<()> {
-    if !(pose.pixel_size.is_finite() && pose.pixel_size > 0.0) {
-        return Err(Error::parameter(
-            "pixel_size",
-            format!("must be > 0, got {}", pose.pixel_size),
-        ));
-    }
-    // Orthographic projection pattern → pixel: pixel = A·p + t (columns 1, 2, 4 of cTp).
-    // Angles wrapped exactly into [−π, π) first: a huge angle (1e15 rad) draws the same image as
-    // its wrapped value, whichever trigonometric path the pose takes.
-    let wrap = crate::phase::wrap_angle;
-    let pose = &Pose {
-        alpha: wrap(pose.alpha),
-        beta: wrap(pose.beta),
-        gamma: wrap(pose.gamma),
-        ..*pose
-    };
-    let t_cp = pose.camera_from_pattern().to_homogeneous();
-    let s = 1.0 / pose.pixel_size;
-    let a = Matrix2::new(
-        s * t_cp[(0, 0)],
-        s * t_cp[(0, 1)],
-        s * t_cp[(1, 0)],
-        s * t_cp[(1, 1)],
-    );
-    let center = Vector2::new((w / 2) as f64, (h / 2) as f64) + center_shift;
-    let t = Vector2::new(s * t_cp[(0, 3)], s * t_cp[(1, 3)]) + center;
-    let a_inv = a.try_inverse().ok_or_else(|| {
-        Error::parameter(
-            "pose",
-            "the pattern plane is seen edge-on (singular projection)",
-        )
-    })?;
+    let (a_inv, t) = pattern_from_pixel(pose, (w, h), center_shift)?;
     // Half-pixel steps of the footprint in pattern coordinates, and its bounding half-extent.
     let e1 = a_inv * Vector2::new(0.5, 0.0);
     let e2 = a_inv * Vector2::new(0.0, 0.5);
@@ -313,6 +304,48 @@ fn render_layout(
         }
     }
     Ok(())
+}
+
+/// The inverse `A⁻¹` of the orthographic projection pattern → pixel `pixel = A·p + t`, and
+/// `t`, on a `w × h` grid whose centre is shifted by `center_shift`.
+fn pattern_from_pixel(
+    pose: &Pose,
+    (w, h): (usize, usize),
+    center_shift: Vector2<f64>,
+) -> Result<(Matrix2<f64>, Vector2<f64>)> {
+    if !(pose.pixel_size.is_finite() && pose.pixel_size > 0.0) {
+        return Err(Error::parameter(
+            "pixel_size",
+            format!("must be > 0, got {}", pose.pixel_size),
+        ));
+    }
+    // Orthographic projection pattern → pixel: pixel = A·p + t (columns 1, 2, 4 of cTp).
+    // Angles wrapped exactly into [−π, π) first: a huge angle (1e15 rad) draws the same image as
+    // its wrapped value, whichever trigonometric path the pose takes.
+    let wrap = crate::phase::wrap_angle;
+    let pose = &Pose {
+        alpha: wrap(pose.alpha),
+        beta: wrap(pose.beta),
+        gamma: wrap(pose.gamma),
+        ..*pose
+    };
+    let t_cp = pose.camera_from_pattern().to_homogeneous();
+    let s = 1.0 / pose.pixel_size;
+    let a = Matrix2::new(
+        s * t_cp[(0, 0)],
+        s * t_cp[(0, 1)],
+        s * t_cp[(1, 0)],
+        s * t_cp[(1, 1)],
+    );
+    let center = Vector2::new((w / 2) as f64, (h / 2) as f64) + center_shift;
+    let t = Vector2::new(s * t_cp[(0, 3)], s * t_cp[(1, 3)]) + center;
+    let a_inv = a.try_inverse().ok_or_else(|| {
+        Error::parameter(
+            "pose",
+            "the pattern plane is seen edge-on (singular projection)",
+        )
+    })?;
+    Ok((a_inv, t))
 }
 
 /// Area of the convex quadrilateral `quad` clipped to the axis-aligned rectangle `r`

@@ -318,28 +318,7 @@ fn replay_params(args: &BagArgs) -> Result<NodeParams, String> {
 pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
     let files = bag_files(&args.input)?;
     let processor = Processor::new(replay_params(args)?, 0)?;
-    let out = &args.output;
-    let sink = match out.extension().and_then(|e| e.to_str()) {
-        Some("mcap") => Sink::Mcap(Box::new(McapSink::create(out, &args.namespace)?)),
-        Some(ext @ ("csv" | "jsonl" | "json")) => {
-            let format = if ext == "csv" {
-                TableFormat::Csv
-            } else {
-                TableFormat::Jsonl
-            };
-            let file = File::create(out).map_err(|e| format!("{}: {e}", out.display()))?;
-            Sink::Table(
-                TableWriter::new(BufWriter::new(file), format)
-                    .map_err(|e| format!("{}: {e}", out.display()))?,
-            )
-        }
-        _ => {
-            return Err(format!(
-                "--output `{}`: expected a .mcap, .csv or .jsonl file",
-                out.display()
-            ))
-        }
-    };
+    let sink = open_sink(args)?;
     let mut replay = Replay {
         processor,
         sink,
@@ -348,46 +327,7 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
     };
     let mut corrupt = 0usize;
     for file in &files {
-        let data = std::fs::read(file).map_err(|e| format!("{}: {e}", file.display()))?;
-        let summary = mcap::Summary::read(&data).ok().flatten();
-        let total = summary
-            .as_ref()
-            .map(|s| {
-                s.channels
-                    .values()
-                    .filter(|c| c.topic == args.topic)
-                    .filter_map(|c| s.stats.as_ref()?.channel_message_counts.get(&c.id))
-                    .sum::<u64>()
-            })
-            .unwrap_or(0);
-        let progress = progress_bar(total, "frames");
-        let mut handle = |message: &mcap::Message| -> Result<(), String> {
-            let channel = &message.channel;
-            if channel.topic != args.topic {
-                return Ok(());
-            }
-            let schema = channel.schema.as_ref().map(|s| s.name.as_str());
-            if schema.is_some_and(|s| s != IMAGE_TYPE) || channel.message_encoding != "cdr" {
-                return Err(format!(
-                    "{}: topic {} carries {} ({}), expected {IMAGE_TYPE} (cdr)",
-                    file.display(),
-                    args.topic,
-                    schema.unwrap_or("no schema"),
-                    channel.message_encoding
-                ));
-            }
-            progress.suspend(|| replay.image(&args.topic, message.log_time, &message.data))?;
-            progress.inc(1);
-            Ok(())
-        };
-        let report =
-            |what: String| progress.suspend(|| eprintln!("vernier: {}: {what}", file.display()));
-        corrupt += match summary.as_ref().filter(|s| !s.chunk_indexes.is_empty()) {
-            // Indexed file: chunk by chunk, so a damaged chunk costs only its own frames.
-            Some(summary) => replay_chunks(&data, summary, &mut handle, &report)?,
-            None => replay_linear(&data, &mut handle, &report)?,
-        };
-        progress.finish_and_clear();
+        corrupt += replay_file(&mut replay, file, args)?;
     }
     if replay.frame == 0 && corrupt == 0 {
         return Err(format!(
@@ -420,6 +360,79 @@ pub fn run(args: &BagArgs) -> Result<ExitCode, String> {
     } else {
         ExitCode::SUCCESS
     })
+}
+
+/// The output the replay writes to, chosen by the `--output` file's extension.
+fn open_sink(args: &BagArgs) -> Result<Sink, String> {
+    let out = &args.output;
+    let sink = match out.extension().and_then(|e| e.to_str()) {
+        Some("mcap") => Sink::Mcap(Box::new(McapSink::create(out, &args.namespace)?)),
+        Some(ext @ ("csv" | "jsonl" | "json")) => {
+            let format = if ext == "csv" {
+                TableFormat::Csv
+            } else {
+                TableFormat::Jsonl
+            };
+            let file = File::create(out).map_err(|e| format!("{}: {e}", out.display()))?;
+            Sink::Table(
+                TableWriter::new(BufWriter::new(file), format)
+                    .map_err(|e| format!("{}: {e}", out.display()))?,
+            )
+        }
+        _ => {
+            return Err(format!(
+                "--output `{}`: expected a .mcap, .csv or .jsonl file",
+                out.display()
+            ))
+        }
+    };
+    Ok(sink)
+}
+
+/// Replays the recording `file` (topic `args.topic`) into `replay`; returns the number of
+/// damaged parts skipped.
+fn replay_file(replay: &mut Replay, file: &Path, args: &BagArgs) -> Result<usize, String> {
+    let data = std::fs::read(file).map_err(|e| format!("{}: {e}", file.display()))?;
+    let summary = mcap::Summary::read(&data).ok().flatten();
+    let total = summary
+        .as_ref()
+        .map(|s| {
+            s.channels
+                .values()
+                .filter(|c| c.topic == args.topic)
+                .filter_map(|c| s.stats.as_ref()?.channel_message_counts.get(&c.id))
+                .sum::<u64>()
+        })
+        .unwrap_or(0);
+    let progress = progress_bar(total, "frames");
+    let mut handle = |message: &mcap::Message| -> Result<(), String> {
+        let channel = &message.channel;
+        if channel.topic != args.topic {
+            return Ok(());
+        }
+        let schema = channel.schema.as_ref().map(|s| s.name.as_str());
+        if schema.is_some_and(|s| s != IMAGE_TYPE) || channel.message_encoding != "cdr" {
+            return Err(format!(
+                "{}: topic {} carries {} ({}), expected {IMAGE_TYPE} (cdr)",
+                file.display(),
+                args.topic,
+                schema.unwrap_or("no schema"),
+                channel.message_encoding
+            ));
+        }
+        progress.suspend(|| replay.image(&args.topic, message.log_time, &message.data))?;
+        progress.inc(1);
+        Ok(())
+    };
+    let report =
+        |what: String| progress.suspend(|| eprintln!("vernier: {}: {what}", file.display()));
+    let corrupt = match summary.as_ref().filter(|s| !s.chunk_indexes.is_empty()) {
+        // Indexed file: chunk by chunk, so a damaged chunk costs only its own frames.
+        Some(summary) => replay_chunks(&data, summary, &mut handle, &report)?,
+        None => replay_linear(&data, &mut handle, &report)?,
+    };
+    progress.finish_and_clear();
+    Ok(corrupt)
 }
 
 /// Replays every chunk of an indexed MCAP file in file order. Each chunk is decoded whole and

@@ -232,83 +232,18 @@ pub fn dot_arrays_with_progress(
     frame: &ExportFrame,
     progress: &mut dyn FnMut(u64),
 ) -> Result<Vec<DotArray>> {
-    let mut visited = 0u64;
-    let mut tick = move |progress: &mut dyn FnMut(u64)| {
-        visited += 1;
-        if visited % PROGRESS_STEP == 0 {
-            progress(visited);
-        }
+    let mut counter = RectCounter {
+        visited: 0,
+        progress,
     };
     let layout = pattern.layout();
-    // Pass 1: sizes, bounds and lattice pitch of each size group.
-    let mut groups: HashMap<(i64, i64), SizeGroup> = HashMap::new();
-    let mut error = None;
-    frame.visit_rects(layout, &mut |r| {
-        tick(progress);
-        if error.is_some() {
-            return;
-        }
-        let d = match to_db(&r) {
-            Ok(d) => d,
-            Err(e) => {
-                error = Some(e);
-                return;
-            }
-        };
-        let g = groups.entry((d.width, d.height)).or_insert(SizeGroup {
-            reference: (d.x, d.y),
-            min: (d.x, d.y),
-            max: (d.x, d.y),
-            gcd: (0, 0),
-            count: 0,
-        });
-        g.min = (g.min.0.min(d.x), g.min.1.min(d.y));
-        g.max = (g.max.0.max(d.x), g.max.1.max(d.y));
-        g.gcd = (
-            gcd(g.gcd.0, d.x - g.reference.0),
-            gcd(g.gcd.1, d.y - g.reference.1),
-        );
-        g.count += 1;
-    });
-    if let Some(e) = error {
-        return Err(e);
-    }
+    let groups = size_groups(layout, frame, &mut counter)?;
+    let mut grids = lattice_grids(&groups);
 
     // Pass 2: occupancy grids for lattice groups, plain rectangles for the others.
-    let mut grids: HashMap<(i64, i64), LatticeGrid> = HashMap::new();
-    for (&size, g) in &groups {
-        let steps = |lo: i64, hi: i64, pitch: i64| {
-            if pitch == 0 {
-                Some(1usize)
-            } else {
-                usize::try_from((hi - lo) / pitch).ok()?.checked_add(1)
-            }
-        };
-        let (Some(nx), Some(ny)) = (
-            steps(g.min.0, g.max.0, g.gcd.0),
-            steps(g.min.1, g.max.1, g.gcd.1),
-        ) else {
-            continue;
-        };
-        match nx.checked_mul(ny) {
-            Some(cells) if cells <= lattice_cell_limit(g.count) => {
-                grids.insert(
-                    size,
-                    LatticeGrid {
-                        size,
-                        origin: g.min,
-                        pitch: g.gcd,
-                        n: (nx, ny),
-                        cells: vec![false; cells],
-                    },
-                );
-            }
-            _ => {}
-        }
-    }
     let mut singles: Vec<DbRect> = Vec::new();
     frame.visit_rects(layout, &mut |r| {
-        tick(progress);
+        counter.tick();
         // Pass 1 converted every rectangle successfully.
         let Ok(d) = to_db(&r) else { return };
         match grids.get_mut(&(d.width, d.height)) {
@@ -342,6 +277,100 @@ pub fn dot_arrays_with_progress(
         pitch_y: 0,
     }));
     Ok(arrays)
+}
+
+/// Counts the rectangles visited, reporting every [`PROGRESS_STEP`].
+struct RectCounter<'a> {
+    visited: u64,
+    progress: &'a mut dyn FnMut(u64),
+}
+
+impl RectCounter<'_> {
+    fn tick(&mut self) {
+        self.visited += 1;
+        if self.visited % PROGRESS_STEP == 0 {
+            (self.progress)(self.visited);
+        }
+    }
+}
+
+/// Pass 1: sizes, bounds and lattice pitch of each size group (database units), or the
+/// first rectangle that does not convert.
+fn size_groups(
+    layout: &dyn Layout,
+    frame: &ExportFrame,
+    counter: &mut RectCounter,
+) -> Result<HashMap<(i64, i64), SizeGroup>> {
+    let mut groups: HashMap<(i64, i64), SizeGroup> = HashMap::new();
+    let mut error = None;
+    frame.visit_rects(layout, &mut |r| {
+        counter.tick();
+        if error.is_some() {
+            return;
+        }
+        let d = match to_db(&r) {
+            Ok(d) => d,
+            Err(e) => {
+                error = Some(e);
+                return;
+            }
+        };
+        let g = groups.entry((d.width, d.height)).or_insert(SizeGroup {
+            reference: (d.x, d.y),
+            min: (d.x, d.y),
+            max: (d.x, d.y),
+            gcd: (0, 0),
+            count: 0,
+        });
+        g.min = (g.min.0.min(d.x), g.min.1.min(d.y));
+        g.max = (g.max.0.max(d.x), g.max.1.max(d.y));
+        g.gcd = (
+            gcd(g.gcd.0, d.x - g.reference.0),
+            gcd(g.gcd.1, d.y - g.reference.1),
+        );
+        g.count += 1;
+    });
+    if let Some(e) = error {
+        return Err(e);
+    }
+    Ok(groups)
+}
+
+/// An empty occupancy grid for each size group whose lattice is small enough
+/// ([`lattice_cell_limit`]); the other groups are written as plain rectangles.
+fn lattice_grids(groups: &HashMap<(i64, i64), SizeGroup>) -> HashMap<(i64, i64), LatticeGrid> {
+    let mut grids: HashMap<(i64, i64), LatticeGrid> = HashMap::new();
+    for (&size, g) in groups {
+        let steps = |lo: i64, hi: i64, pitch: i64| {
+            if pitch == 0 {
+                Some(1usize)
+            } else {
+                usize::try_from((hi - lo) / pitch).ok()?.checked_add(1)
+            }
+        };
+        let (Some(nx), Some(ny)) = (
+            steps(g.min.0, g.max.0, g.gcd.0),
+            steps(g.min.1, g.max.1, g.gcd.1),
+        ) else {
+            continue;
+        };
+        match nx.checked_mul(ny) {
+            Some(cells) if cells <= lattice_cell_limit(g.count) => {
+                grids.insert(
+                    size,
+                    LatticeGrid {
+                        size,
+                        origin: g.min,
+                        pitch: g.gcd,
+                        n: (nx, ny),
+                        cells: vec![false; cells],
+                    },
+                );
+            }
+            _ => {}
+        }
+    }
+    grids
 }
 
 /// Rectangles between two progress reports of [`dot_arrays_with_progress`].

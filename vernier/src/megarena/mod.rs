@@ -220,38 +220,7 @@ impl MegarenaDetector {
                 None => (analysis.planes, 0),
             };
         // Decode each lattice axis: the absolute plane 2π·(layout index) and its decoding.
-        let decode_axis = |k: usize| -> Result<(PhasePlane, AxisDecoding)> {
-            let bits = decoding::read_lines(&self.thumbnail, &orientation, k, white);
-            let direction = orientation.direction[k];
-            let mut soft = bits.soft.clone();
-            if direction < 0 {
-                soft.reverse(); // layout order
-            }
-            let located = self.index.locate(&soft).map_err(|e| match e {
-                Error::Decode(msg) => Error::Decode(format!("lattice axis {}: {msg}", k + 1)),
-                other => other,
-            })?;
-            // Layout index of the line with phase order n: direction·n + offset.
-            let first_layout_line = 3 * located.start as i64 + 1;
-            let offset = if direction > 0 {
-                first_layout_line - bits.first_line
-            } else {
-                let last_line = bits.first_line + 3 * (bits.soft.len() as i64 - 1);
-                first_layout_line + last_line
-            };
-            let (p, d) = (planes[k.min(1)], direction as f64);
-            let plane = PhasePlane {
-                a: d * p.a,
-                b: d * p.b,
-                c: d * p.c + TAU * offset as f64,
-            };
-            let axis = AxisDecoding {
-                lattice_axis: k,
-                direction,
-                located,
-            };
-            Ok((plane, axis))
-        };
+        let decode_axis = |k: usize| self.decode_axis(&orientation, &planes, white, k);
         let (mut first, mut second) = (decode_axis(0)?, decode_axis(1)?);
         // The pattern frame is right-handed in the image (y_p = x_p turned by +90°), so the
         // axis whose gradient turns positively into the other's is x.
@@ -289,6 +258,47 @@ impl MegarenaDetector {
             refined_dots,
             out_of_plane,
         })
+    }
+
+    /// The absolute plane `2π·(layout index)` of lattice axis `k` (0 or 1) and its decoding:
+    /// the axis's coding lines read in the thumbnail and located in the sequence.
+    fn decode_axis(
+        &self,
+        orientation: &orientation::Orientation,
+        planes: &[PhasePlane; 2],
+        white: f64,
+        k: usize,
+    ) -> Result<(PhasePlane, AxisDecoding)> {
+        let bits = decoding::read_lines(&self.thumbnail, orientation, k, white);
+        let direction = orientation.direction[k];
+        let mut soft = bits.soft.clone();
+        if direction < 0 {
+            soft.reverse(); // layout order
+        }
+        let located = self.index.locate(&soft).map_err(|e| match e {
+            Error::Decode(msg) => Error::Decode(format!("lattice axis {}: {msg}", k + 1)),
+            other => other,
+        })?;
+        // Layout index of the line with phase order n: direction·n + offset.
+        let first_layout_line = 3 * located.start as i64 + 1;
+        let offset = if direction > 0 {
+            first_layout_line - bits.first_line
+        } else {
+            let last_line = bits.first_line + 3 * (bits.soft.len() as i64 - 1);
+            first_layout_line + last_line
+        };
+        let (p, d) = (planes[k.min(1)], direction as f64);
+        let plane = PhasePlane {
+            a: d * p.a,
+            b: d * p.b,
+            c: d * p.c + TAU * offset as f64,
+        };
+        let axis = AxisDecoding {
+            lattice_axis: k,
+            direction,
+            located,
+        };
+        Ok((plane, axis))
     }
 }
 

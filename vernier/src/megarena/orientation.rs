@@ -46,57 +46,8 @@ pub struct Orientation {
 /// Errors ([`Error::Decode`]) when no dot contrast is measured or when the hypotheses cannot
 /// be separated (margin below [`MIN_ORIENTATION_MARGIN`]).
 pub fn find_orientation(thumb: &Thumbnail) -> Result<Orientation> {
-    let mut sum = [[0.0f64; 3]; 3];
-    let mut count = [[0usize; 3]; 3];
-    for n1 in thumb.orders(0) {
-        for n2 in thumb.orders(1) {
-            if let Some(v) = thumb.level_at(n1, n2) {
-                let (r1, r2) = (n1.rem_euclid(3) as usize, n2.rem_euclid(3) as usize);
-                sum[r1][r2] += v as f64;
-                count[r1][r2] += 1;
-            }
-        }
-    }
-    if count.iter().flatten().any(|&c| c == 0) {
-        return Err(Error::Decode(
-            "not enough periods to decode: the image does not show a full 3×3 cell".into(),
-        ));
-    }
-    let mut cell = [[0.0f64; 3]; 3];
-    for r1 in 0..3 {
-        for r2 in 0..3 {
-            cell[r1][r2] = sum[r1][r2] / count[r1][r2] as f64;
-        }
-    }
-    // (score, white level, coding, missing) of every hypothesis.
-    let mut hypotheses = Vec::with_capacity(36);
-    for c1 in 0..3 {
-        for c2 in 0..3 {
-            // The two non-coding residues in increasing order (r⁻, r⁺).
-            let others = |c: usize| {
-                let (a, b) = ((c + 1) % 3, (c + 2) % 3);
-                [a.min(b), a.max(b)]
-            };
-            let (o1, o2) = (others(c1), others(c2));
-            for quadrant in 0..4 {
-                // The original's quadrant numbering: quadrant 0 → (r⁺, r⁺), 1 → (r⁺, r⁻),
-                // 2 → (r⁻, r⁺), 3 → (r⁻, r⁻).
-                let m1 = if quadrant < 2 { o1[1] } else { o1[0] };
-                let m2 = if quadrant % 2 == 0 { o2[1] } else { o2[0] };
-                let mut present = 0.0;
-                for r1 in o1 {
-                    for r2 in o2 {
-                        if (r1, r2) != (m1, m2) {
-                            present += cell[r1][r2];
-                        }
-                    }
-                }
-                let score = present / 3.0 - cell[m1][m2];
-                hypotheses.push((score, [c1, c2], [m1, m2]));
-            }
-        }
-    }
-    hypotheses.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let cell = mean_cell(thumb)?;
+    let hypotheses = ranked_hypotheses(&cell);
     let (best, second) = (hypotheses[0], hypotheses[1]);
     let (score, coding, missing) = best;
     if score.is_nan() || score <= 0.0 {
@@ -127,4 +78,67 @@ pub fn find_orientation(thumb: &Thumbnail) -> Result<Orientation> {
         dot_contrast: score,
         margin,
     })
+}
+
+/// Mean level of each residue class `(n1 mod 3, n2 mod 3)` of the thumbnail's nodes: the
+/// 3×3 cell averaged over the image.
+fn mean_cell(thumb: &Thumbnail) -> Result<[[f64; 3]; 3]> {
+    let mut sum = [[0.0f64; 3]; 3];
+    let mut count = [[0usize; 3]; 3];
+    for n1 in thumb.orders(0) {
+        for n2 in thumb.orders(1) {
+            if let Some(v) = thumb.level_at(n1, n2) {
+                let (r1, r2) = (n1.rem_euclid(3) as usize, n2.rem_euclid(3) as usize);
+                sum[r1][r2] += v as f64;
+                count[r1][r2] += 1;
+            }
+        }
+    }
+    if count.iter().flatten().any(|&c| c == 0) {
+        return Err(Error::Decode(
+            "not enough periods to decode: the image does not show a full 3×3 cell".into(),
+        ));
+    }
+    let mut cell = [[0.0f64; 3]; 3];
+    for r1 in 0..3 {
+        for r2 in 0..3 {
+            cell[r1][r2] = sum[r1][r2] / count[r1][r2] as f64;
+        }
+    }
+    Ok(cell)
+}
+
+/// Every hypothesis (coding residues, missing dot) `(score, coding, missing)`, best first:
+/// the score is the mean level of the cell's three present dots minus the missing one's.
+fn ranked_hypotheses(cell: &[[f64; 3]; 3]) -> Vec<(f64, [usize; 2], [usize; 2])> {
+    // (score, white level, coding, missing) of every hypothesis.
+    let mut hypotheses = Vec::with_capacity(36);
+    for c1 in 0..3 {
+        for c2 in 0..3 {
+            // The two non-coding residues in increasing order (r⁻, r⁺).
+            let others = |c: usize| {
+                let (a, b) = ((c + 1) % 3, (c + 2) % 3);
+                [a.min(b), a.max(b)]
+            };
+            let (o1, o2) = (others(c1), others(c2));
+            for quadrant in 0..4 {
+                // The original's quadrant numbering: quadrant 0 → (r⁺, r⁺), 1 → (r⁺, r⁻),
+                // 2 → (r⁻, r⁺), 3 → (r⁻, r⁻).
+                let m1 = if quadrant < 2 { o1[1] } else { o1[0] };
+                let m2 = if quadrant % 2 == 0 { o2[1] } else { o2[0] };
+                let mut present = 0.0;
+                for r1 in o1 {
+                    for r2 in o2 {
+                        if (r1, r2) != (m1, m2) {
+                            present += cell[r1][r2];
+                        }
+                    }
+                }
+                let score = present / 3.0 - cell[m1][m2];
+                hypotheses.push((score, [c1, c2], [m1, m2]));
+            }
+        }
+    }
+    hypotheses.sort_by(|a, b| b.0.total_cmp(&a.0));
+    hypotheses
 }

@@ -285,6 +285,42 @@ fn block_phases(
     plane: &PhasePlane,
     n: usize,
 ) -> Option<Vec<(usize, usize, f64, f64)>> {
+    let sums = demodulated_block_sums(image, plane, n)?;
+    // Remove the block mean's contribution: Σ ḡ·e^{−iφ} = ḡ·Σ e^{−iφ}, summed exactly per block.
+    let kernel_sums = block_kernel_sums(image, plane, n)?;
+    let mut out = Vec::with_capacity(n * n);
+    let mut total = (0.0, 0.0);
+    let mut values = vec![(0.0f64, 0.0f64); n * n];
+    for (i, (s, k)) in sums.iter().zip(&kernel_sums).enumerate() {
+        let mean = if s.3 > 0 { s.2 / s.3 as f64 } else { 0.0 };
+        let v = (s.0 - mean * k.0, s.1 - mean * k.1);
+        values[i] = v;
+        total.0 += v.0;
+        total.1 += v.1;
+    }
+    // Residual phases relative to the global one, unwrapped from the centre block.
+    let reference = total.1.atan2(total.0);
+    let raw: Vec<f64> = values
+        .iter()
+        .map(|v| wrap_to_pi(v.1.atan2(v.0) - reference))
+        .collect();
+    let unwrapped = unwrap_from_centre(&raw, n);
+    for i in 0..n {
+        for j in 0..n {
+            let v = values[i * n + j];
+            out.push((i, j, unwrapped[i * n + j], v.0.hypot(v.1)));
+        }
+    }
+    Some(out)
+}
+
+/// Per block of `n × n`: `(Σ g·cos(−φ), Σ g·sin(−φ), Σ g, pixel count)`, `φ` the phase of
+/// `plane`.
+fn demodulated_block_sums(
+    image: &GreyImage,
+    plane: &PhasePlane,
+    n: usize,
+) -> Option<Vec<(f64, f64, f64, usize)>> {
     let (w, h) = (image.width(), image.height());
     let (cx, cy) = image.center();
     let px = image.pixels();
@@ -313,7 +349,14 @@ fn block_phases(
             cell.3 += 1;
         }
     }
-    // Remove the block mean's contribution: Σ ḡ·e^{−iφ} = ḡ·Σ e^{−iφ}, summed exactly per block.
+    Some(sums)
+}
+
+/// `Σ e^{−iφ}` over each block of `n × n` of the image, `φ` the phase of `plane` (row by row,
+/// each a geometric series).
+fn block_kernel_sums(image: &GreyImage, plane: &PhasePlane, n: usize) -> Option<Vec<(f64, f64)>> {
+    let (w, h) = (image.width(), image.height());
+    let (cx, cy) = image.center();
     let mut kernel_sums = vec![(0.0f64, 0.0f64); n * n];
     for row in 0..h {
         let y = row as f64 - cy as f64;
@@ -329,23 +372,12 @@ fn block_phases(
             cell.1 += im;
         }
     }
-    let mut out = Vec::with_capacity(n * n);
-    let mut total = (0.0, 0.0);
-    let mut values = vec![(0.0f64, 0.0f64); n * n];
-    for (i, (s, k)) in sums.iter().zip(&kernel_sums).enumerate() {
-        let mean = if s.3 > 0 { s.2 / s.3 as f64 } else { 0.0 };
-        let v = (s.0 - mean * k.0, s.1 - mean * k.1);
-        values[i] = v;
-        total.0 += v.0;
-        total.1 += v.1;
-    }
-    // Residual phases relative to the global one, unwrapped from the centre block (rows first
-    // along the centre column, then along each row).
-    let reference = total.1.atan2(total.0);
-    let raw: Vec<f64> = values
-        .iter()
-        .map(|v| wrap_to_pi(v.1.atan2(v.0) - reference))
-        .collect();
+    Some(kernel_sums)
+}
+
+/// The `n × n` wrapped phases `raw` unwrapped from the centre block: rows first along the
+/// centre column, then along each row.
+fn unwrap_from_centre(raw: &[f64], n: usize) -> Vec<f64> {
     let mut unwrapped = vec![0.0f64; n * n];
     let mid = n / 2;
     unwrapped[mid * n + mid] = raw[mid * n + mid];
@@ -364,13 +396,7 @@ fn block_phases(
             unwrapped[i * n + j] = follow(unwrapped[i * n + j - 1], raw[i * n + j]);
         }
     }
-    for i in 0..n {
-        for j in 0..n {
-            let v = values[i * n + j];
-            out.push((i, j, unwrapped[i * n + j], v.0.hypot(v.1)));
-        }
-    }
-    Some(out)
+    unwrapped
 }
 
 /// `Σ_{m=0}^{count−1} e^{i(θ₀ + m·δ)}` as `(re, im)`.

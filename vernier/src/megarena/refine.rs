@@ -70,19 +70,12 @@ pub(super) fn refine_on_dots(
 ) -> Option<DotwiseFit> {
     let lattice = Lattice::new(image, planes).ok()?;
     let (w, h) = (image.width(), image.height());
-    let (cx, cy) = image.center();
     let period = planes[0].pixel_period().min(planes[1].pixel_period());
     let radius = WINDOW_RADIUS * period;
     if !(1.0..256.0).contains(&radius) {
         return None;
     }
-    let columns = KernelTable::new(radius, [planes[0].a, planes[1].a]);
-    let rows = KernelTable::new(radius, [planes[0].b, planes[1].b]);
-    let n = columns.taps;
-    let reach = columns.reach as f64;
     let threshold = PRESENT_FRACTION * white as f32;
-    let px = image.pixels();
-    let norm = planes.map(|p| p.frequency());
     // Centre-weighted fit, as the phase engine's (sin³ apodisation over the image): on a
     // distorted image the planes then describe the neighbourhood of the centre pixel the pose
     // refers to. Beyond MAX_DOTS dots, node n is kept with probability min(1, s·√W(n)) and
@@ -91,6 +84,39 @@ pub(super) fn refine_on_dots(
     let image_window = |qc: f64, qr: f64| {
         sine_cubed(qc / (w - 1).max(1) as f64) * sine_cubed(qr / (h - 1).max(1) as f64)
     };
+    let (present, scale) = sampling_scale(thumb, &lattice, threshold, &image_window);
+    let mut sums = DotSums::new(image, planes, radius, present);
+    for (i, n1) in thumb.orders(0).enumerate() {
+        for (j, n2) in thumb.orders(1).enumerate() {
+            let idx = i * thumb.dims[1] + j;
+            let (Some(&contrast), Some(&background)) =
+                (thumb.contrast.get(idx), thumb.background_level.get(idx))
+            else {
+                continue;
+            };
+            if contrast.is_nan() || contrast <= threshold {
+                continue;
+            }
+            let (qc, qr) = lattice.position(n1 as f64, n2 as f64);
+            let window = image_window(qc, qr);
+            let probability = (scale * window.sqrt()).min(1.0);
+            if !(probability > 0.0 && kept(n1, n2, probability)) {
+                continue;
+            }
+            sums.add_dot(qc, qr, background, window, probability);
+        }
+    }
+    sums.corrected_planes()
+}
+
+/// The number of present dots and the sampling scale `s` (keep probability `min(1, s·√W)`):
+/// infinite, i.e. every dot kept, up to MAX_DOTS dots.
+fn sampling_scale(
+    thumb: &Thumbnail,
+    lattice: &Lattice,
+    threshold: f32,
+    image_window: &impl Fn(f64, f64) -> f64,
+) -> (usize, f64) {
     let mut present = 0usize;
     let mut root_sum = 0.0;
     for (i, n1) in thumb.orders(0).enumerate() {
@@ -111,120 +137,156 @@ pub(super) fn refine_on_dots(
     } else {
         f64::INFINITY
     };
-    let mut samples: [Vec<DotPhase>; 2] = [
-        Vec::with_capacity(MAX_DOTS.min(present)),
-        Vec::with_capacity(MAX_DOTS.min(present)),
-    ];
-    // Gain sums per direction: Σ Im(Y) and Σ |k|·Re(z).
-    let mut gain_num = [0.0f64; 2];
-    let mut gain_den = [0.0f64; 2];
-    // Column sums V_q(c) = Σ_r Y_q(r)·g(r, c), q = re/im × lobe (× window/slope).
-    let mut sums = vec![0.0f32; 8 * n];
-    let mut dot_count = 0usize;
-    for (i, n1) in thumb.orders(0).enumerate() {
-        for (j, n2) in thumb.orders(1).enumerate() {
-            let idx = i * thumb.dims[1] + j;
-            let (Some(&contrast), Some(&background)) =
-                (thumb.contrast.get(idx), thumb.background_level.get(idx))
-            else {
-                continue;
-            };
-            if contrast.is_nan() || contrast <= threshold {
-                continue;
-            }
-            let (qc, qr) = lattice.position(n1 as f64, n2 as f64);
-            let window = image_window(qc, qr);
-            let probability = (scale * window.sqrt()).min(1.0);
-            if !(probability > 0.0 && kept(n1, n2, probability)) {
-                continue;
-            }
-            let inside = qc - reach >= 0.0
-                && qr - reach >= 0.0
-                && qc + reach + 1.0 < w as f64
-                && qr + reach + 1.0 < h as f64;
-            if !inside {
-                continue;
-            }
-            let ((c0, fx, ex), (r0, fy, ey)) = (columns.locate(qc), rows.locate(qr));
-            let (Some(kx), Some(ky)) = (columns.entry(fx), rows.entry(fy)) else {
-                continue;
-            };
-            let with_gain = dot_count % GAIN_STRIDE == 0;
-            dot_count += 1;
-            // z_l = Σ_c K_l(c)·V_l(c) (complex), minus the background's share.
-            let products = dot_products(px, (w, c0, r0), kx, ky, n, with_gain, &mut sums);
-            let dot = |a: usize, b: usize| -> f64 {
-                let slot = match (a / 4, b / 4) {
-                    (0, 0) => 0,
-                    (1, 0) => 8,
-                    _ => 16,
-                };
-                // Within a block: lobe l = (a % 4) / 2, then (re,re), (im,im), (re,im), (im,re).
-                let l = (a % 4) / 2;
-                let (ar, br) = (a % 2, b % 2);
-                let k = match (ar, br) {
-                    (0, 0) => 0,
-                    (1, 1) => 1,
-                    (0, 1) => 2,
-                    _ => 3,
-                };
-                products.get(slot + 4 * l + k).copied().unwrap_or(0.0) as f64
-            };
-            let bg = background as f64;
-            let (x, y) = (qc - cx as f64, qr - cy as f64);
-            for l in 0..2 {
-                let (re, im) = (2 * l, 2 * l + 1);
-                let complex = |ka: usize, vb: usize, ta: usize, tb: usize| -> (f64, f64) {
-                    // (K_re + iK_im)·(V_re + iV_im) − bg·(ΣK)(ΣY)
-                    let zr = dot(ka + re, vb + re) - dot(ka + im, vb + im);
-                    let zi = dot(ka + re, vb + im) + dot(ka + im, vb + re);
-                    let (kr, ki) = (columns.total(fx, ta + re), columns.total(fx, ta + im));
-                    let (yr, yi) = (rows.total(fy, tb + re), rows.total(fy, tb + im));
-                    (zr - bg * (kr * yr - ki * yi), zi - bg * (kr * yi + ki * yr))
-                };
-                let (zr, zi) = complex(0, 0, 0, 0);
-                if zr.is_nan() || zr <= 0.0 {
-                    continue; // not a dot centred here (dust, edge): no phase
-                }
-                if with_gain {
-                    // ax: x-slope kernel with the y window; by: x window with the y slope.
-                    let ax = complex(4, 0, 4, 0);
-                    let by = complex(0, 4, 0, 4);
-                    let (kxh, kyh) = (planes[l].a / norm[l], planes[l].b / norm[l]);
-                    gain_num[l] += kxh * ax.1 + kyh * by.1;
-                    gain_den[l] += norm[l] * zr;
-                }
-                samples[l].push(DotPhase {
-                    x,
-                    y,
-                    phase: zi.atan2(zr),
-                    offset: planes[l].a * ex + planes[l].b * ey,
-                    weight: (zr * zr + zi * zi) * window / probability,
-                });
-            }
+    (present, scale)
+}
+
+/// Entry `(a, b)` of [`dot_products`]' result: kernel row `a` (re/im × lobe, then the
+/// slope kernels from 4) against column-sum row `b`.
+fn product(products: &[f32], a: usize, b: usize) -> f64 {
+    let slot = match (a / 4, b / 4) {
+        (0, 0) => 0,
+        (1, 0) => 8,
+        _ => 16,
+    };
+    // Within a block: lobe l = (a % 4) / 2, then (re,re), (im,im), (re,im), (im,re).
+    let l = (a % 4) / 2;
+    let (ar, br) = (a % 2, b % 2);
+    let k = match (ar, br) {
+        (0, 0) => 0,
+        (1, 1) => 1,
+        (0, 1) => 2,
+        _ => 3,
+    };
+    products.get(slot + 4 * l + k).copied().unwrap_or(0.0) as f64
+}
+
+/// The dot-wise measurement in progress: the kernel tables, and per lobe the dots' phases and
+/// the window-gain sums.
+struct DotSums<'a> {
+    px: &'a [f32],
+    size: (usize, usize),
+    centre: (usize, usize),
+    planes: &'a [PhasePlane; 2],
+    norm: [f64; 2],
+    columns: KernelTable,
+    rows: KernelTable,
+    samples: [Vec<DotPhase>; 2],
+    /// Gain sums per direction: Σ Im(Y) and Σ |k|·Re(z).
+    gain_num: [f64; 2],
+    gain_den: [f64; 2],
+    /// Column sums V_q(c) = Σ_r Y_q(r)·g(r, c), q = re/im × lobe (× window/slope).
+    sums: Vec<f32>,
+    dot_count: usize,
+}
+
+impl<'a> DotSums<'a> {
+    fn new(image: &'a GreyImage, planes: &'a [PhasePlane; 2], radius: f64, present: usize) -> Self {
+        let columns = KernelTable::new(radius, [planes[0].a, planes[1].a]);
+        let rows = KernelTable::new(radius, [planes[0].b, planes[1].b]);
+        let n = columns.taps;
+        DotSums {
+            px: image.pixels(),
+            size: (image.width(), image.height()),
+            centre: image.center(),
+            planes,
+            norm: planes.map(|p| p.frequency()),
+            columns,
+            rows,
+            samples: [
+                Vec::with_capacity(MAX_DOTS.min(present)),
+                Vec::with_capacity(MAX_DOTS.min(present)),
+            ],
+            gain_num: [0.0f64; 2],
+            gain_den: [0.0f64; 2],
+            sums: vec![0.0f32; 8 * n],
+            dot_count: 0,
         }
     }
-    let dots = samples[0].len().min(samples[1].len());
-    if dots < 16 {
-        return None;
+
+    /// Measures the dot at node position `(qc, qr)` (skipped near the image border or where
+    /// the window's real part is not positive) with its importance weight.
+    fn add_dot(&mut self, qc: f64, qr: f64, background: f32, window: f64, probability: f64) {
+        let (w, h) = self.size;
+        let (cx, cy) = self.centre;
+        let (columns, rows, planes, norm) = (&self.columns, &self.rows, self.planes, self.norm);
+        let n = columns.taps;
+        let reach = columns.reach as f64;
+        let inside = qc - reach >= 0.0
+            && qr - reach >= 0.0
+            && qc + reach + 1.0 < w as f64
+            && qr + reach + 1.0 < h as f64;
+        if !inside {
+            return;
+        }
+        let ((c0, fx, ex), (r0, fy, ey)) = (columns.locate(qc), rows.locate(qr));
+        let (Some(kx), Some(ky)) = (columns.entry(fx), rows.entry(fy)) else {
+            return;
+        };
+        let with_gain = self.dot_count % GAIN_STRIDE == 0;
+        self.dot_count += 1;
+        // z_l = Σ_c K_l(c)·V_l(c) (complex), minus the background's share.
+        let products = dot_products(self.px, (w, c0, r0), kx, ky, n, with_gain, &mut self.sums);
+        let dot = |a: usize, b: usize| product(&products, a, b);
+        let bg = background as f64;
+        let (x, y) = (qc - cx as f64, qr - cy as f64);
+        for l in 0..2 {
+            let (re, im) = (2 * l, 2 * l + 1);
+            let complex = |ka: usize, vb: usize, ta: usize, tb: usize| -> (f64, f64) {
+                // (K_re + iK_im)·(V_re + iV_im) − bg·(ΣK)(ΣY)
+                let zr = dot(ka + re, vb + re) - dot(ka + im, vb + im);
+                let zi = dot(ka + re, vb + im) + dot(ka + im, vb + re);
+                let (kr, ki) = (columns.total(fx, ta + re), columns.total(fx, ta + im));
+                let (yr, yi) = (rows.total(fy, tb + re), rows.total(fy, tb + im));
+                (zr - bg * (kr * yr - ki * yi), zi - bg * (kr * yi + ki * yr))
+            };
+            let (zr, zi) = complex(0, 0, 0, 0);
+            if zr.is_nan() || zr <= 0.0 {
+                continue; // not a dot centred here (dust, edge): no phase
+            }
+            if with_gain {
+                // ax: x-slope kernel with the y window; by: x window with the y slope.
+                let ax = complex(4, 0, 4, 0);
+                let by = complex(0, 4, 0, 4);
+                let (kxh, kyh) = (planes[l].a / norm[l], planes[l].b / norm[l]);
+                self.gain_num[l] += kxh * ax.1 + kyh * by.1;
+                self.gain_den[l] += norm[l] * zr;
+            }
+            self.samples[l].push(DotPhase {
+                x,
+                y,
+                phase: zi.atan2(zr),
+                offset: planes[l].a * ex + planes[l].b * ey,
+                weight: (zr * zr + zi * zi) * window / probability,
+            });
+        }
     }
-    let mut out = *planes;
-    for l in 0..2 {
-        let g = 1.0 - gain_num[l] / gain_den[l];
-        if !(g.is_finite() && g > 0.1 && g <= 1.5) {
+
+    /// The planes corrected by the dots' phase errors (divided by the measured gain), or
+    /// `None` with fewer than 16 dots or an implausible gain.
+    fn corrected_planes(mut self) -> Option<DotwiseFit> {
+        let planes = self.planes;
+        let dots = self.samples[0].len().min(self.samples[1].len());
+        if dots < 16 {
             return None;
         }
-        for s in samples[l].iter_mut() {
-            s.phase = s.phase / g + s.offset;
+        let mut out = *planes;
+        for l in 0..2 {
+            let g = 1.0 - self.gain_num[l] / self.gain_den[l];
+            if !(g.is_finite() && g > 0.1 && g <= 1.5) {
+                return None;
+            }
+            for s in self.samples[l].iter_mut() {
+                s.phase = s.phase / g + s.offset;
+            }
+            let delta = weighted_plane(&self.samples[l])?;
+            out[l] = PhasePlane {
+                a: planes[l].a + delta.a,
+                b: planes[l].b + delta.b,
+                c: planes[l].c + delta.c,
+            };
         }
-        let delta = weighted_plane(&samples[l])?;
-        out[l] = PhasePlane {
-            a: planes[l].a + delta.a,
-            b: planes[l].b + delta.b,
-            c: planes[l].c + delta.c,
-        };
+        Some(DotwiseFit { planes: out, dots })
     }
-    Some(DotwiseFit { planes: out, dots })
 }
 
 /// Column sums `V_q(c) = Σ_r Y_q(r)·g(r0 + r, c0 + c)` of the `n × n` window at `(c0, r0)`

@@ -81,6 +81,63 @@ pub(crate) fn lobe_phase(
     let (rows, cols) = (spectrum.rows, spectrum.cols);
     let (mr, mc) = (plan.mr, plan.mc);
     let (kx0, ky0) = lobe;
+    transform_lobe(spectrum, lobe, sigma, plan);
+    let (step_x, step_y) = (cols as f64 / mc as f64, rows as f64 / mr as f64);
+    let (cx, cy) = ((cols / 2) as f64, (rows / 2) as f64);
+    // Baseband phase, unwrapped from the sample nearest to the centre pixel ("quarters" method:
+    // along the anchor row, then up and down each column).
+    let anchor_i = ((cx / step_x).round() as usize).min(mc - 1);
+    let anchor_j = ((cy / step_y).round() as usize).min(mr - 1);
+    let phase = unwrap_quarters(&plan.grid, (mr, mc), (anchor_j, anchor_i));
+    // Plane fit on the samples inside the central crop, in image-frame coordinates.
+    let col_offset = (cols as f64 * crop_factor / 2.0).floor();
+    let row_offset = (rows as f64 * crop_factor / 2.0).floor();
+    let inside = |pos: f64, offset: f64, n: usize| pos >= offset && pos < n as f64 - offset;
+    let samples = (0..mr)
+        .flat_map(|j| (0..mc).map(move |i| (j, i)))
+        .filter_map(|(j, i)| {
+            let (x, y) = (i as f64 * step_x, j as f64 * step_y);
+            (inside(x, col_offset, cols) && inside(y, row_offset, rows))
+                .then(|| (x - cx, y - cy, phase[j * mc + i]))
+        });
+    let base = fit_plane(samples)?;
+    // Add the carrier exp(2πi(kx0·x/C + ky0·y/R)) back, referred to the centre pixel.
+    let (fx, fy) = (
+        TAU * kx0 as f64 / cols as f64,
+        TAU * ky0 as f64 / rows as f64,
+    );
+    let plane = PhasePlane {
+        a: base.a + fx,
+        b: base.b + fy,
+        c: base.c + fx * cx + fy * cy,
+    }
+    .with_wrapped_offset();
+    let map = keep_map.then(|| PhaseMap {
+        rows: mr,
+        cols: mc,
+        step_x,
+        step_y,
+        offset: (0.0, 0.0),
+        phase: (0..mr * mc)
+            .map(|k| {
+                (phase[k] + fx * (k % mc) as f64 * step_x + fy * (k / mc) as f64 * step_y) as f32
+            })
+            .collect(),
+        amplitude: plan.grid.iter().map(|z| z.norm()).collect(),
+    });
+    Some((plane, map))
+}
+
+/// Band-passes `lobe` (Gaussian of `sigma` bins) into `plan.grid`: the decimated complex
+/// baseband of the lobe, by a 2-D inverse DFT of the weighted bins around it.
+fn transform_lobe(
+    spectrum: &HalfSpectrum<'_>,
+    lobe: (i64, i64),
+    sigma: f64,
+    plan: &mut BandpassPlan,
+) {
+    let (mr, mc) = (plan.mr, plan.mc);
+    let (kx0, ky0) = lobe;
     // Gather the weighted bins around the lobe; offset m sits at index m mod M.
     let inv_two_sigma2 = 1.0 / (2.0 * sigma * sigma);
     let (hr, hc) = ((mr / 2) as i64, (mc / 2) as i64);
@@ -105,14 +162,18 @@ pub(crate) fn lobe_phase(
             plan.grid[j * mc + i] = plan.column[j];
         }
     }
-    let (step_x, step_y) = (cols as f64 / mc as f64, rows as f64 / mr as f64);
-    let (cx, cy) = ((cols / 2) as f64, (rows / 2) as f64);
-    // Baseband phase, unwrapped from the sample nearest to the centre pixel ("quarters" method:
-    // along the anchor row, then up and down each column).
-    let anchor_i = ((cx / step_x).round() as usize).min(mc - 1);
-    let anchor_j = ((cy / step_y).round() as usize).min(mr - 1);
+}
+
+/// The unwrapped phase of the `mr × mc` `grid`, from the sample `anchor = (j, i)` nearest
+/// to the centre pixel ("quarters" method: along the anchor row, then up and down each
+/// column).
+fn unwrap_quarters(
+    grid: &[C32],
+    (mr, mc): (usize, usize),
+    (anchor_j, anchor_i): (usize, usize),
+) -> Vec<f64> {
     let mut phase = vec![0.0f64; mr * mc];
-    let raw = |j: usize, i: usize| plan.grid[j * mc + i].arg() as f64;
+    let raw = |j: usize, i: usize| grid[j * mc + i].arg() as f64;
     let step = |prev_raw: f64, cur_raw: f64, offset: &mut f64| {
         let d = cur_raw - prev_raw;
         if d > PI {
@@ -156,41 +217,5 @@ pub(crate) fn lobe_phase(
             raw(j, i)
         });
     }
-    // Plane fit on the samples inside the central crop, in image-frame coordinates.
-    let col_offset = (cols as f64 * crop_factor / 2.0).floor();
-    let row_offset = (rows as f64 * crop_factor / 2.0).floor();
-    let inside = |pos: f64, offset: f64, n: usize| pos >= offset && pos < n as f64 - offset;
-    let samples = (0..mr)
-        .flat_map(|j| (0..mc).map(move |i| (j, i)))
-        .filter_map(|(j, i)| {
-            let (x, y) = (i as f64 * step_x, j as f64 * step_y);
-            (inside(x, col_offset, cols) && inside(y, row_offset, rows))
-                .then(|| (x - cx, y - cy, phase[j * mc + i]))
-        });
-    let base = fit_plane(samples)?;
-    // Add the carrier exp(2πi(kx0·x/C + ky0·y/R)) back, referred to the centre pixel.
-    let (fx, fy) = (
-        TAU * kx0 as f64 / cols as f64,
-        TAU * ky0 as f64 / rows as f64,
-    );
-    let plane = PhasePlane {
-        a: base.a + fx,
-        b: base.b + fy,
-        c: base.c + fx * cx + fy * cy,
-    }
-    .with_wrapped_offset();
-    let map = keep_map.then(|| PhaseMap {
-        rows: mr,
-        cols: mc,
-        step_x,
-        step_y,
-        offset: (0.0, 0.0),
-        phase: (0..mr * mc)
-            .map(|k| {
-                (phase[k] + fx * (k % mc) as f64 * step_x + fy * (k / mc) as f64 * step_y) as f32
-            })
-            .collect(),
-        amplitude: plan.grid.iter().map(|z| z.norm()).collect(),
-    });
-    Some((plane, map))
+    phase
 }

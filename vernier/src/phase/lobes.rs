@@ -98,49 +98,13 @@ pub(crate) fn find_lobes(
     guide: Option<&Guide>,
 ) -> Result<(Lobe, Lobe), LobeError> {
     let (rows, cols) = (spectrum.rows as i64, spectrum.cols as i64);
-    let max_r = search
-        .max_radius
-        .min((cols / 2) as f64)
-        .min((rows / 2) as f64)
-        .max(0.0);
-    let kx_max = (max_r.floor() as i64).min(cols / 2);
-    let ky_max = (max_r.floor() as i64).min(rows / 2);
-    let (min_r2, max_r2) = (search.min_radius.powi(2), max_r.powi(2));
-    let in_ring = |kx: i64, ky: i64| {
-        let r2 = (kx * kx + ky * ky) as f64;
-        r2 > min_r2 && r2 <= max_r2 && kx.abs() <= kx_max && ky.abs() <= ky_max
-    };
-
-    // Streaming pass: ring energy and the strongest local maxima of the stored half (kx ≥ 0).
-    let mut top: Vec<Candidate> = Vec::with_capacity(CANDIDATES + 1);
-    let mut ring_energy = 0.0f64;
-    let mut ring_count = 0usize;
-    for kx in 0..=kx_max {
-        let column = &spectrum.bins[kx as usize * rows as usize..(kx as usize + 1) * rows as usize];
-        // Rows of this column inside the outer radius: |ky| ≤ sqrt(max_r² − kx²).
-        let ky_lim = ((max_r2 - (kx * kx) as f64).max(0.0).sqrt().floor() as i64).min(ky_max);
-        for ky in -ky_lim..=ky_lim {
-            if (kx == 0 && ky <= 0) || !in_ring(kx, ky) {
-                continue; // (0, −ky) mirrors (0, ky)
-            }
-            let e = column[ky.rem_euclid(rows) as usize].norm_sqr();
-            ring_energy += e as f64;
-            ring_count += 1;
-            if top.len() < CANDIDATES || e > top[top.len() - 1].energy {
-                insert_candidate(&mut top, Candidate { kx, ky, energy: e });
-            }
-        }
-    }
-    let mean_bin_energy = if ring_count > 0 {
-        ring_energy / ring_count as f64
-    } else {
-        0.0
-    };
+    let ring = Ring::new(search, rows, cols);
+    let (top, mean_bin_energy) = strongest_bins(spectrum, &ring);
     let pixels = (rows * cols) as f64;
 
     // 3×3 neighbourhood energy at any signed frequency (0 outside the ring).
     let strength = |kx: i64, ky: i64| -> f64 {
-        if !in_ring(kx.abs(), if kx < 0 { -ky } else { ky }) {
+        if !ring.contains(kx.abs(), if kx < 0 { -ky } else { ky }) {
             return 0.0;
         }
         let mut e = 0.0f64;
@@ -180,6 +144,80 @@ pub(crate) fn find_lobes(
         v.sort_by(|a, b| b.power.total_cmp(&a.power));
         v
     };
+    let (first, second) = strongest_pair(&ranked, search)?;
+    let (first, second) = fundamentals(first, second, (rows, cols), &strength, &to_lobe);
+    Ok(if first.kx >= second.kx {
+        (first, second)
+    } else {
+        (second, first)
+    })
+}
+
+/// The search ring in frequency bins: `min_radius < |k| ≤ max_radius`, within the
+/// spectrum's half sizes.
+struct Ring {
+    min_r2: f64,
+    max_r2: f64,
+    kx_max: i64,
+    ky_max: i64,
+}
+
+impl Ring {
+    fn new(search: &LobeSearch, rows: i64, cols: i64) -> Ring {
+        let max_r = search
+            .max_radius
+            .min((cols / 2) as f64)
+            .min((rows / 2) as f64)
+            .max(0.0);
+        Ring {
+            min_r2: search.min_radius.powi(2),
+            max_r2: max_r.powi(2),
+            kx_max: (max_r.floor() as i64).min(cols / 2),
+            ky_max: (max_r.floor() as i64).min(rows / 2),
+        }
+    }
+
+    fn contains(&self, kx: i64, ky: i64) -> bool {
+        let r2 = (kx * kx + ky * ky) as f64;
+        r2 > self.min_r2 && r2 <= self.max_r2 && kx.abs() <= self.kx_max && ky.abs() <= self.ky_max
+    }
+}
+
+/// Streaming pass over the stored half (kx ≥ 0) of the ring: its strongest local maxima
+/// and the mean energy of its bins.
+fn strongest_bins(spectrum: &HalfSpectrum<'_>, ring: &Ring) -> (Vec<Candidate>, f64) {
+    let rows = spectrum.rows as i64;
+    let mut top: Vec<Candidate> = Vec::with_capacity(CANDIDATES + 1);
+    let mut ring_energy = 0.0f64;
+    let mut ring_count = 0usize;
+    for kx in 0..=ring.kx_max {
+        let column = &spectrum.bins[kx as usize * rows as usize..(kx as usize + 1) * rows as usize];
+        // Rows of this column inside the outer radius: |ky| ≤ sqrt(max_r² − kx²).
+        let ky_lim =
+            ((ring.max_r2 - (kx * kx) as f64).max(0.0).sqrt().floor() as i64).min(ring.ky_max);
+        for ky in -ky_lim..=ky_lim {
+            if (kx == 0 && ky <= 0) || !ring.contains(kx, ky) {
+                continue; // (0, −ky) mirrors (0, ky)
+            }
+            let e = column[ky.rem_euclid(rows) as usize].norm_sqr();
+            ring_energy += e as f64;
+            ring_count += 1;
+            if top.len() < CANDIDATES || e > top[top.len() - 1].energy {
+                insert_candidate(&mut top, Candidate { kx, ky, energy: e });
+            }
+        }
+    }
+    let mean_bin_energy = if ring_count > 0 {
+        ring_energy / ring_count as f64
+    } else {
+        0.0
+    };
+    (top, mean_bin_energy)
+}
+
+/// The strongest lobe of `ranked` (strongest first) and the strongest outside an angular
+/// cut around its direction, each accepted by the search's power and prominence limits.
+fn strongest_pair(ranked: &[Lobe], search: &LobeSearch) -> Result<(Lobe, Lobe), LobeError> {
     let accept =
         |l: &Lobe| l.power > search.min_peak_power && l.prominence >= search.min_peak_prominence;
 
@@ -216,12 +254,7 @@ pub(crate) fn find_lobes(
             prominence: second.prominence,
         });
     }
-    let (first, second) = fundamentals(first, second, (rows, cols), &strength, &to_lobe);
-    Ok(if first.kx >= second.kx {
-        (first, second)
-    } else {
-        (second, first)
-    })
+    Ok((first, second))
 }
 
 /// The strongest bin within each guided disc, if it is strong and prominent enough.

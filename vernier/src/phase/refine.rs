@@ -75,6 +75,41 @@ impl RefinePlan {
             kernels: vec![0.0; 8 * cols],
         }
     }
+
+    /// Kernel rows for both lobes: w·e^{−iax} (re, im) and x·w·e^{−iax} (re, im).
+    fn set_kernels(&mut self, planes: &[PhasePlane; 2], xs: &[f64]) {
+        let cols = self.cols;
+        for (l, plane) in planes.iter().enumerate() {
+            for (x, (&w, &t)) in self.wx.iter().zip(xs).enumerate() {
+                let e = Cplx::from_polar(w, -plane.a * t);
+                let ex = e * t;
+                self.kernels[(4 * l) * cols + x] = e.re as f32;
+                self.kernels[(4 * l + 1) * cols + x] = e.im as f32;
+                self.kernels[(4 * l + 2) * cols + x] = ex.re as f32;
+                self.kernels[(4 * l + 3) * cols + x] = ex.im as f32;
+            }
+        }
+    }
+
+    /// Data moments M[l][p] = Σ w·g·p·e^{−iφ_l}, p ∈ {1, x, y}, with the kernels of
+    /// [`Self::set_kernels`].
+    fn data_moments(&self, pixels: &[f32], planes: &[PhasePlane; 2], ys: &[f64]) -> [[Cplx; 3]; 2] {
+        let cols = self.cols;
+        let mut m = [[Cplx::default(); 3]; 2];
+        for (j, row) in pixels.chunks_exact(cols).enumerate() {
+            let d = row_dots(row, &self.kernels, cols);
+            for (l, plane) in planes.iter().enumerate() {
+                let f = Cplx::from_polar(self.wy[j], -plane.b * ys[j]);
+                let s0 = Cplx::new(d[4 * l], d[4 * l + 1]);
+                let s1 = Cplx::new(d[4 * l + 2], d[4 * l + 3]);
+                m[l][0] += f * s0;
+                m[l][1] += f * s1;
+                m[l][2] += f * s0 * ys[j];
+            }
+        }
+        rotate_by_offsets(&mut m, planes);
+        m
+    }
 }
 
 /// Dot products of one image row with the 8 kernel rows (`kernels` is `8 × n`), lane-parallel
@@ -294,36 +329,8 @@ pub(crate) fn refine(
     let mut iterations = 0;
     for _ in 0..max_iterations {
         iterations += 1;
-        // Kernel rows for both lobes: w·e^{−iax} (re, im) and x·w·e^{−iax} (re, im).
-        for (l, plane) in planes.iter().enumerate() {
-            for (x, (&w, &t)) in plan.wx.iter().zip(&xs).enumerate() {
-                let e = Cplx::from_polar(w, -plane.a * t);
-                let ex = e * t;
-                plan.kernels[(4 * l) * cols + x] = e.re as f32;
-                plan.kernels[(4 * l + 1) * cols + x] = e.im as f32;
-                plan.kernels[(4 * l + 2) * cols + x] = ex.re as f32;
-                plan.kernels[(4 * l + 3) * cols + x] = ex.im as f32;
-            }
-        }
-        // Data moments M[l][p] = Σ w·g·p·e^{−iφ_l}, p ∈ {1, x, y}.
-        let mut m = [[Cplx::default(); 3]; 2];
-        for (j, row) in pixels.chunks_exact(cols).enumerate() {
-            let d = row_dots(row, &plan.kernels, cols);
-            for (l, plane) in planes.iter().enumerate() {
-                let f = Cplx::from_polar(plan.wy[j], -plane.b * ys[j]);
-                let s0 = Cplx::new(d[4 * l], d[4 * l + 1]);
-                let s1 = Cplx::new(d[4 * l + 2], d[4 * l + 3]);
-                m[l][0] += f * s0;
-                m[l][1] += f * s1;
-                m[l][2] += f * s0 * ys[j];
-            }
-        }
-        for (l, plane) in planes.iter().enumerate() {
-            let phase_c = Cplx::from_polar(1.0, -plane.c);
-            for v in m[l].iter_mut() {
-                *v *= phase_c;
-            }
-        }
+        plan.set_kernels(&planes, &xs);
+        let m = plan.data_moments(pixels, &planes, &ys);
         let sums = CombinationSums::new(&planes, &plan.wx, &xs, &plan.wy, &ys);
         let moments = Moments {
             sum_w,
@@ -503,20 +510,7 @@ pub(crate) fn refine_weighted(
     let (cx, cy) = ((cols / 2) as f64, (rows / 2) as f64);
     let xs: Vec<f64> = (0..cols).map(|i| i as f64 - cx).collect();
     let ys: Vec<f64> = (0..rows).map(|j| j as f64 - cy).collect();
-    // Per-row buffers: the weight row w(x)·W(x, y) and the weighted data row.
-    let mut weight_row = vec![0.0f32; cols];
-    let mut data_row = vec![0.0f32; cols];
-    let (mut sum_w, mut sum_w2, mut sum_g, mut sum_g2) = (0.0, 0.0, 0.0, 0.0);
-    for j in 0..rows {
-        for x in 0..cols {
-            let w = plan.wx[x] * plan.wy[j] * finite_weight(weights[j * cols + x]) as f64;
-            let g = pixels[j * cols + x] as f64;
-            sum_w += w;
-            sum_w2 += w * w;
-            sum_g += w * g;
-            sum_g2 += w * g * g;
-        }
-    }
+    let (sum_w, sum_w2, sum_g, sum_g2) = weighted_totals(pixels, weights, plan);
     let mean = if sum_w > 0.0 { sum_g / sum_w } else { 0.0 };
     let variance = if sum_w > 0.0 {
         (sum_g2 / sum_w - mean * mean).max(0.0)
@@ -527,71 +521,11 @@ pub(crate) fn refine_weighted(
     let mut amplitudes = [0.0; 2];
     let mut residual = variance;
     let mut iterations = 0;
-    // Kernels: data (per lobe e^{−iax}, x·e^{−iax}: 8 rows) and Gram (per combination k and
-    // power i ≤ 2, x^i·e^{iα_k x}: 42 rows), re and im parts interleaved by row.
-    let mut data_kernels = vec![0.0f32; 8 * cols];
-    let mut gram_kernels = vec![0.0f32; 2 * 3 * COMBOS.len() * cols];
-    let mut data_dots = [0.0f64; 8];
-    let mut gram_dots = vec![0.0f64; 2 * 3 * COMBOS.len()];
+    let mut buffers = WeightedBuffers::new(cols);
     for _ in 0..max_iterations {
         iterations += 1;
-        for (l, plane) in planes.iter().enumerate() {
-            for (x, &t) in xs.iter().enumerate() {
-                let e = Cplx::from_polar(1.0, -plane.a * t);
-                for (r, v) in [e.re, e.im, e.re * t, e.im * t].into_iter().enumerate() {
-                    data_kernels[(4 * l + r) * cols + x] = v as f32;
-                }
-            }
-        }
-        for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
-            let alpha = n0 as f64 * planes[0].a + n1 as f64 * planes[1].a;
-            for (x, &t) in xs.iter().enumerate() {
-                let e = Cplx::from_polar(1.0, alpha * t);
-                for i in 0..3 {
-                    let v = e * t.powi(i as i32);
-                    gram_kernels[((k * 3 + i) * 2) * cols + x] = v.re as f32;
-                    gram_kernels[((k * 3 + i) * 2 + 1) * cols + x] = v.im as f32;
-                }
-            }
-        }
-        let mut m = [[Cplx::default(); 3]; 2];
-        // table[k][i][j] = Σ W·x^i·y^j·e^{i(α_k x + β_k y)} for i + j ≤ 2.
-        let mut table = [[[Cplx::default(); 3]; 3]; 7];
-        for j in 0..rows {
-            let (y, wy) = (ys[j], plan.wy[j]);
-            for x in 0..cols {
-                let w = (plan.wx[x] * finite_weight(weights[j * cols + x]) as f64) as f32;
-                weight_row[x] = w;
-                data_row[x] = w * pixels[j * cols + x];
-            }
-            dots(&data_row, &data_kernels, &mut data_dots);
-            for (l, plane) in planes.iter().enumerate() {
-                let f = Cplx::from_polar(wy, -plane.b * y);
-                let s0 = Cplx::new(data_dots[4 * l], data_dots[4 * l + 1]);
-                let s1 = Cplx::new(data_dots[4 * l + 2], data_dots[4 * l + 3]);
-                m[l][0] += f * s0;
-                m[l][1] += f * s1;
-                m[l][2] += f * s0 * y;
-            }
-            dots(&weight_row, &gram_kernels, &mut gram_dots);
-            for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
-                let beta = n0 as f64 * planes[0].b + n1 as f64 * planes[1].b;
-                let f = Cplx::from_polar(wy, beta * y);
-                for i in 0..3 {
-                    let s =
-                        Cplx::new(gram_dots[(k * 3 + i) * 2], gram_dots[(k * 3 + i) * 2 + 1]) * f;
-                    for (jy, entry) in table[k][i].iter_mut().enumerate().take(3 - i) {
-                        *entry += s * y.powi(jy as i32);
-                    }
-                }
-            }
-        }
-        for (l, plane) in planes.iter().enumerate() {
-            let phase_c = Cplx::from_polar(1.0, -plane.c);
-            for v in m[l].iter_mut() {
-                *v *= phase_c;
-            }
-        }
+        buffers.set_kernels(&planes, &xs);
+        let (m, table) = buffers.moments(pixels, weights, plan, &planes, &ys);
         let offsets: Vec<f64> = COMBOS
             .iter()
             .map(|&(n0, n1)| n0 as f64 * planes[0].c + n1 as f64 * planes[1].c)
@@ -633,6 +567,135 @@ pub(crate) fn refine_weighted(
             0.0
         },
         iterations,
+    }
+}
+
+/// `(Σ W, Σ W², Σ W·g, Σ W·g²)` of [`refine_weighted`]'s weights `W = w(x)·w(y)·weight`.
+fn weighted_totals(pixels: &[f32], weights: &[f32], plan: &RefinePlan) -> (f64, f64, f64, f64) {
+    let (rows, cols) = (plan.rows, plan.cols);
+    let (mut sum_w, mut sum_w2, mut sum_g, mut sum_g2) = (0.0, 0.0, 0.0, 0.0);
+    for j in 0..rows {
+        for x in 0..cols {
+            let w = plan.wx[x] * plan.wy[j] * finite_weight(weights[j * cols + x]) as f64;
+            let g = pixels[j * cols + x] as f64;
+            sum_w += w;
+            sum_w2 += w * w;
+            sum_g += w * g;
+            sum_g2 += w * g * g;
+        }
+    }
+    (sum_w, sum_w2, sum_g, sum_g2)
+}
+
+/// Multiplies lobe `l`'s moments by `e^{−ic_l}`: from the kernels' phase (`a·x + b·y`) to
+/// the plane's.
+fn rotate_by_offsets(m: &mut [[Cplx; 3]; 2], planes: &[PhasePlane; 2]) {
+    for (l, plane) in planes.iter().enumerate() {
+        let phase_c = Cplx::from_polar(1.0, -plane.c);
+        for v in m[l].iter_mut() {
+            *v *= phase_c;
+        }
+    }
+}
+
+/// `table[k][i][j] = Σ W·x^i·y^j·e^{i(α_k x + β_k y)}` for combination `k` of [`COMBOS`] and
+/// `i + j ≤ 2`.
+type GramTable = [[[Cplx; 3]; 3]; 7];
+
+/// Kernels and per-row buffers of [`refine_weighted`].
+struct WeightedBuffers {
+    /// The weight row w(x)·W(x, y).
+    weight_row: Vec<f32>,
+    /// The weighted data row.
+    data_row: Vec<f32>,
+    /// Per lobe e^{−iax}, x·e^{−iax}: 8 rows, re and im parts interleaved by row.
+    data_kernels: Vec<f32>,
+    /// Per combination k and power i ≤ 2, x^i·e^{iα_k x}: 42 rows, re and im interleaved.
+    gram_kernels: Vec<f32>,
+    data_dots: [f64; 8],
+    gram_dots: Vec<f64>,
+}
+
+impl WeightedBuffers {
+    fn new(cols: usize) -> Self {
+        WeightedBuffers {
+            weight_row: vec![0.0f32; cols],
+            data_row: vec![0.0f32; cols],
+            data_kernels: vec![0.0f32; 8 * cols],
+            gram_kernels: vec![0.0f32; 2 * 3 * COMBOS.len() * cols],
+            data_dots: [0.0f64; 8],
+            gram_dots: vec![0.0f64; 2 * 3 * COMBOS.len()],
+        }
+    }
+
+    /// The data and Gram kernels of `planes` over columns `xs`.
+    fn set_kernels(&mut self, planes: &[PhasePlane; 2], xs: &[f64]) {
+        let cols = xs.len();
+        for (l, plane) in planes.iter().enumerate() {
+            for (x, &t) in xs.iter().enumerate() {
+                let e = Cplx::from_polar(1.0, -plane.a * t);
+                for (r, v) in [e.re, e.im, e.re * t, e.im * t].into_iter().enumerate() {
+                    self.data_kernels[(4 * l + r) * cols + x] = v as f32;
+                }
+            }
+        }
+        for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
+            let alpha = n0 as f64 * planes[0].a + n1 as f64 * planes[1].a;
+            for (x, &t) in xs.iter().enumerate() {
+                let e = Cplx::from_polar(1.0, alpha * t);
+                for i in 0..3 {
+                    let v = e * t.powi(i as i32);
+                    self.gram_kernels[((k * 3 + i) * 2) * cols + x] = v.re as f32;
+                    self.gram_kernels[((k * 3 + i) * 2 + 1) * cols + x] = v.im as f32;
+                }
+            }
+        }
+    }
+
+    /// The data moments `M[l][p] = Σ W·g·p·e^{−iφ_l}` (p ∈ {1, x, y}) and the Gram table,
+    /// with the kernels of [`Self::set_kernels`].
+    fn moments(
+        &mut self,
+        pixels: &[f32],
+        weights: &[f32],
+        plan: &RefinePlan,
+        planes: &[PhasePlane; 2],
+        ys: &[f64],
+    ) -> ([[Cplx; 3]; 2], GramTable) {
+        let (rows, cols) = (plan.rows, plan.cols);
+        let mut m = [[Cplx::default(); 3]; 2];
+        let mut table: GramTable = [[[Cplx::default(); 3]; 3]; 7];
+        for j in 0..rows {
+            let (y, wy) = (ys[j], plan.wy[j]);
+            for x in 0..cols {
+                let w = (plan.wx[x] * finite_weight(weights[j * cols + x]) as f64) as f32;
+                self.weight_row[x] = w;
+                self.data_row[x] = w * pixels[j * cols + x];
+            }
+            dots(&self.data_row, &self.data_kernels, &mut self.data_dots);
+            for (l, plane) in planes.iter().enumerate() {
+                let f = Cplx::from_polar(wy, -plane.b * y);
+                let s0 = Cplx::new(self.data_dots[4 * l], self.data_dots[4 * l + 1]);
+                let s1 = Cplx::new(self.data_dots[4 * l + 2], self.data_dots[4 * l + 3]);
+                m[l][0] += f * s0;
+                m[l][1] += f * s1;
+                m[l][2] += f * s0 * y;
+            }
+            dots(&self.weight_row, &self.gram_kernels, &mut self.gram_dots);
+            for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
+                let beta = n0 as f64 * planes[0].b + n1 as f64 * planes[1].b;
+                let f = Cplx::from_polar(wy, beta * y);
+                for i in 0..3 {
+                    let gd = &self.gram_dots;
+                    let s = Cplx::new(gd[(k * 3 + i) * 2], gd[(k * 3 + i) * 2 + 1]) * f;
+                    for (jy, entry) in table[k][i].iter_mut().enumerate().take(3 - i) {
+                        *entry += s * y.powi(jy as i32);
+                    }
+                }
+            }
+        }
+        rotate_by_offsets(&mut m, planes);
+        (m, table)
     }
 }
 

@@ -228,92 +228,23 @@ fn rank_hypotheses(
     range: &SearchRange,
     levels: &[Option<f64>],
 ) -> Option<Vec<(Hypothesis, f64)>> {
-    // Centred thumbnail, padded by the largest template radius so that every lookup is in
-    // bounds; each entry holds (value − mean, 1) on seen cells and (0, 0) elsewhere.
-    let seen: Vec<f64> = levels.iter().flatten().copied().collect();
-    let n = seen.len();
-    if n < 16 {
-        return None;
-    }
-    let mean = seen.iter().sum::<f64>() / n as f64;
-    let var = seen.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n as f64;
-    // NaN-safe: a NaN variance is rejected too.
-    if var.is_nan() || var <= 1e-12 {
-        return None;
-    }
-    let pad = templates.iter().map(|t| t.half[0].max(t.half[1])).max()? + 1;
-    let pw = thumb.len[0] as i64 + 2 * pad;
-    let ph = thumb.len[1] as i64 + 2 * pad;
-    let mut grid = vec![[0.0f32; 2]; (pw * ph) as usize];
-    for r in 0..thumb.len[1] {
-        for c in 0..thumb.len[0] {
-            if let Some(v) = levels[r * thumb.len[0] + c] {
-                let k = (r as i64 + pad) * pw + c as i64 + pad;
-                grid[k as usize] = [(v - mean) as f32, 1.0];
-            }
-        }
-    }
-    // Padded index of thumbnail cell (i1, i2).
-    let index = |i: [i64; 2]| {
-        let (c, r) = thumb.index(i);
-        (r + pad) * pw + c + pad
-    };
-    let norm = (n as f64 * var).sqrt();
+    let grid = CentredLevels::new(thumb, templates, levels)?;
     // Every hypothesis tried, with its correlation.
     let mut scored: Vec<(Hypothesis, f64)> = Vec::new();
-    let even_up = |v: i64| v + v.rem_euclid(2);
     let mut offsets: Vec<i64> = Vec::new();
     for (bitmap, template) in templates.iter().enumerate() {
-        let total = template.cells.len();
-        if total == 0 {
+        if template.cells.is_empty() {
             continue;
         }
         for orientation in Orientation::ALL {
-            // Template cells in thumbnail axes, as padded-index offsets from the origin cell.
-            offsets.clear();
-            offsets.extend(template.cells.iter().map(|&j| {
-                let i = orientation.inverse_apply([j[0] as f64, j[1] as f64]);
-                i[1] as i64 * pw + i[0] as i64
-            }));
-            let reach = template.half[0].max(template.half[1]);
-            let mut o2 = even_up(range.origin[1][0]);
-            while o2 <= range.origin[1][1] {
-                let mut o1 = even_up(range.origin[0][0]);
-                while o1 <= range.origin[0][1] {
-                    let origin = [o1, o2];
-                    o1 += 2;
-                    // The whole template must stay inside the padded grid.
-                    let (c, r) = thumb.index(origin);
-                    if c + pad < reach
-                        || r + pad < reach
-                        || c + reach >= thumb.len[0] as i64 + pad
-                        || r + reach >= thumb.len[1] as i64 + pad
-                    {
-                        continue;
-                    }
-                    let base = index(origin);
-                    let (mut s1, mut n1) = (0.0f32, 0.0f32);
-                    for &o in &offsets {
-                        let [v, seen] = grid[(base + o) as usize];
-                        s1 += v;
-                        n1 += seen;
-                    }
-                    let n1 = n1 as f64;
-                    if n1 < range.min_overlap * total as f64 || n1 >= n as f64 {
-                        continue;
-                    }
-                    // Pearson correlation with the 0/1 template over the seen cells.
-                    let p = n1 / n as f64;
-                    let r = s1 as f64 / (norm * (n as f64 * p * (1.0 - p)).sqrt());
-                    let h = Hypothesis {
-                        bitmap,
-                        orientation,
-                        origin_cell: origin,
-                    };
-                    scored.push((h, r));
-                }
-                o2 += 2;
-            }
+            grid.score_origins(
+                thumb,
+                range,
+                (bitmap, template),
+                orientation,
+                &mut offsets,
+                &mut scored,
+            );
         }
     }
     // A mirrored reading must beat a proper one clearly: with a bitmap that is its own mirror
@@ -327,6 +258,128 @@ fn rank_hypotheses(
     };
     scored.sort_by(|a, b| rank(b).total_cmp(&rank(a)));
     (!scored.is_empty()).then_some(scored)
+}
+
+/// The thumbnail's seen levels, centred on their mean and padded by the largest template
+/// radius so that every lookup is in bounds: each entry holds (value − mean, 1) on seen cells
+/// and (0, 0) elsewhere.
+struct CentredLevels {
+    grid: Vec<[f32; 2]>,
+    /// Padding, cells.
+    pad: i64,
+    /// Padded width, cells.
+    pw: i64,
+    /// Number of seen cells.
+    n: usize,
+    /// `√(n·var)` of the seen levels.
+    norm: f64,
+}
+
+impl CentredLevels {
+    /// `None` with fewer than 16 seen cells or levels that do not vary.
+    fn new(
+        thumb: &Thumbnail,
+        templates: &[Template],
+        levels: &[Option<f64>],
+    ) -> Option<CentredLevels> {
+        let seen: Vec<f64> = levels.iter().flatten().copied().collect();
+        let n = seen.len();
+        if n < 16 {
+            return None;
+        }
+        let mean = seen.iter().sum::<f64>() / n as f64;
+        let var = seen.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n as f64;
+        // NaN-safe: a NaN variance is rejected too.
+        if var.is_nan() || var <= 1e-12 {
+            return None;
+        }
+        let pad = templates.iter().map(|t| t.half[0].max(t.half[1])).max()? + 1;
+        let pw = thumb.len[0] as i64 + 2 * pad;
+        let ph = thumb.len[1] as i64 + 2 * pad;
+        let mut grid = vec![[0.0f32; 2]; (pw * ph) as usize];
+        for r in 0..thumb.len[1] {
+            for c in 0..thumb.len[0] {
+                if let Some(v) = levels[r * thumb.len[0] + c] {
+                    let k = (r as i64 + pad) * pw + c as i64 + pad;
+                    grid[k as usize] = [(v - mean) as f32, 1.0];
+                }
+            }
+        }
+        Some(CentredLevels {
+            grid,
+            pad,
+            pw,
+            n,
+            norm: (n as f64 * var).sqrt(),
+        })
+    }
+
+    /// Scores `template` (index `bitmap`) in `orientation` at every origin cell of `range`
+    /// where it stays inside the padded grid and overlaps enough seen cells, into `scored`.
+    /// `offsets` is scratch.
+    fn score_origins(
+        &self,
+        thumb: &Thumbnail,
+        range: &SearchRange,
+        (bitmap, template): (usize, &Template),
+        orientation: Orientation,
+        offsets: &mut Vec<i64>,
+        scored: &mut Vec<(Hypothesis, f64)>,
+    ) {
+        let (pad, pw, n, norm, grid) = (self.pad, self.pw, self.n, self.norm, &self.grid);
+        let total = template.cells.len();
+        // Padded index of thumbnail cell (i1, i2).
+        let index = |i: [i64; 2]| {
+            let (c, r) = thumb.index(i);
+            (r + pad) * pw + c + pad
+        };
+        let even_up = |v: i64| v + v.rem_euclid(2);
+        // Template cells in thumbnail axes, as padded-index offsets from the origin cell.
+        offsets.clear();
+        offsets.extend(template.cells.iter().map(|&j| {
+            let i = orientation.inverse_apply([j[0] as f64, j[1] as f64]);
+            i[1] as i64 * pw + i[0] as i64
+        }));
+        let reach = template.half[0].max(template.half[1]);
+        let mut o2 = even_up(range.origin[1][0]);
+        while o2 <= range.origin[1][1] {
+            let mut o1 = even_up(range.origin[0][0]);
+            while o1 <= range.origin[0][1] {
+                let origin = [o1, o2];
+                o1 += 2;
+                // The whole template must stay inside the padded grid.
+                let (c, r) = thumb.index(origin);
+                if c + pad < reach
+                    || r + pad < reach
+                    || c + reach >= thumb.len[0] as i64 + pad
+                    || r + reach >= thumb.len[1] as i64 + pad
+                {
+                    continue;
+                }
+                let base = index(origin);
+                let (mut s1, mut n1) = (0.0f32, 0.0f32);
+                for &o in offsets.iter() {
+                    let [v, seen] = grid[(base + o) as usize];
+                    s1 += v;
+                    n1 += seen;
+                }
+                let n1 = n1 as f64;
+                if n1 < range.min_overlap * total as f64 || n1 >= n as f64 {
+                    continue;
+                }
+                // Pearson correlation with the 0/1 template over the seen cells.
+                let p = n1 / n as f64;
+                let r = s1 as f64 / (norm * (n as f64 * p * (1.0 - p)).sqrt());
+                let h = Hypothesis {
+                    bitmap,
+                    orientation,
+                    origin_cell: origin,
+                };
+                scored.push((h, r));
+            }
+            o2 += 2;
+        }
+    }
 }
 
 /// Smallest local contrast between the fitted dot and gap levels, in units of the whole

@@ -220,38 +220,13 @@ impl StampParams {
                 format!("must be > 0 periods, got {}", self.max_frame_offset),
             ));
         }
-        let q = &self.quads;
-        if q.threshold_window < 2 {
-            return Err(Error::parameter(
-                "threshold_window",
-                format!("must be ≥ 2 pixels, got {}", q.threshold_window),
-            ));
-        }
-        if !(q.min_side.is_finite() && q.min_side > 0.0) {
-            return Err(Error::parameter(
-                "min_side",
-                format!("must be > 0 pixels, got {}", q.min_side),
-            ));
-        }
-        if !(1..=8).contains(&q.decimation) {
-            return Err(Error::parameter(
-                "decimation",
-                format!("must be in 1..=8, got {}", q.decimation),
-            ));
-        }
-        if !(q.outline_tolerance.is_finite() && q.outline_tolerance >= 0.0) {
-            return Err(Error::parameter(
-                "outline_tolerance",
-                format!("must be ≥ 0, got {}", q.outline_tolerance),
-            ));
-        }
-        if q.levels > 5 {
-            return Err(Error::parameter(
-                "levels",
-                format!("must be in 0..=5, got {}", q.levels),
-            ));
-        }
+        validate_quads(&self.quads)?;
         self.phase.validate()?;
+        self.resolved_search()
+    }
+
+    /// The search mode, `Auto` resolved from the bitmaps (all framed or none).
+    fn resolved_search(&self) -> Result<StampSearch> {
         let framed = self
             .bitmaps
             .iter()
@@ -271,6 +246,41 @@ impl StampParams {
             mode => Ok(mode),
         }
     }
+}
+
+/// Checks the frame search's settings, naming the first invalid one.
+fn validate_quads(q: &QuadParams) -> Result<()> {
+    if q.threshold_window < 2 {
+        return Err(Error::parameter(
+            "threshold_window",
+            format!("must be ≥ 2 pixels, got {}", q.threshold_window),
+        ));
+    }
+    if !(q.min_side.is_finite() && q.min_side > 0.0) {
+        return Err(Error::parameter(
+            "min_side",
+            format!("must be > 0 pixels, got {}", q.min_side),
+        ));
+    }
+    if !(1..=8).contains(&q.decimation) {
+        return Err(Error::parameter(
+            "decimation",
+            format!("must be in 1..=8, got {}", q.decimation),
+        ));
+    }
+    if !(q.outline_tolerance.is_finite() && q.outline_tolerance >= 0.0) {
+        return Err(Error::parameter(
+            "outline_tolerance",
+            format!("must be ≥ 0, got {}", q.outline_tolerance),
+        ));
+    }
+    if q.levels > 5 {
+        return Err(Error::parameter(
+            "levels",
+            format!("must be in 0..=5, got {}", q.levels),
+        ));
+    }
+    Ok(())
 }
 
 /// One marker found.
@@ -391,6 +401,18 @@ struct WindowReading {
     center: (i64, i64),
     size: usize,
     analysis: PhaseAnalysis,
+    polarity: Polarity,
+}
+
+/// One window's grid as the stages of [`StampDetector::read_window`] see it.
+struct WindowGrid<'a> {
+    image: &'a GreyImage,
+    center: (i64, i64),
+    /// The window's centre pixel, image coordinates (the planes' origin).
+    origin: Vector2<f64>,
+    planes: [PhasePlane; 2],
+    /// Mean pixel period of the planes.
+    period: f64,
     polarity: Polarity,
 }
 
@@ -744,6 +766,40 @@ impl StampDetector {
                 return Ok(None);
             }
         }
+        let grid = WindowGrid {
+            image,
+            center,
+            origin: Vector2::new(center.0 as f64, center.1 as f64),
+            planes,
+            period,
+            polarity,
+        };
+        let Some(found) = self.read_bitmap(&grid, frame.as_ref()) else {
+            return Ok(None);
+        };
+        let frame = match frame {
+            None => None,
+            Some(q) => match self.confirmed_frame(&grid, q, &found) {
+                Some(q) => Some(q),
+                None => return Ok(None),
+            },
+        };
+        Ok(Some(WindowReading {
+            found,
+            planes,
+            origin: grid.origin,
+            frame,
+            center,
+            size,
+            analysis,
+            polarity,
+        }))
+    }
+
+    /// The bitmap read in the window's thumbnail (through the frame's perspective where it
+    /// bends the view), or `None` when no reading is accepted.
+    fn read_bitmap(&self, grid: &WindowGrid, frame: Option<&Quad>) -> Option<Match> {
+        let (center, planes, polarity) = (grid.center, &grid.planes, grid.polarity);
         // Thumbnail wide enough for the largest bitmap at the largest centre offset, plus a
         // margin of background.
         let reach = self
@@ -753,18 +809,15 @@ impl StampDetector {
             .max()
             .unwrap_or(0);
         let half = reach + self.origin_reach() + 2;
-        let origin = Vector2::new(center.0 as f64, center.1 as f64);
         let thumb_at = |warp: Option<&Matrix3<f64>>| {
-            self.matched_thumbnail(image, origin, &planes, half, polarity, warp)
+            self.matched_thumbnail(grid.image, grid.origin, planes, half, polarity, warp)
         };
         // Perspective: the frame's outline says how the affine view of the planes bends,
         // unless an occluder bent the outline (a hair or a dust speck stuck to the frame).
         // Where the bend moves cells and the outline's view reads nothing acceptable, the
         // affine view is read too, and stands if its reading is accepted.
-        let cell_px = 0.5 * period;
-        let warp = frame
-            .as_ref()
-            .and_then(|q| Some((q.perspective_warp()?, q.perspective_bend()?)));
+        let cell_px = 0.5 * grid.period;
+        let warp = frame.and_then(|q| Some((q.perspective_warp()?, q.perspective_bend()?)));
         let accepted = |m: &Match| self.reading_rejected(m).is_none();
         let found = match warp {
             None => thumb_at(None),
@@ -777,64 +830,57 @@ impl StampDetector {
                 }
             }
         };
-        let Some(found) = found else {
-            return Ok(None);
-        };
+        let found = found?;
         if let Some(why) = self.reading_rejected(&found) {
             log::debug!("stamp at {center:?}: {why}");
-            return Ok(None);
+            return None;
         }
-        let mut frame = frame;
-        if let Some(q) = &frame {
-            if !self.frame_fits(q, &planes, self.shapes[found.bitmap].0) {
+        Some(found)
+    }
+
+    /// The frame `q` found around the window if it fits bitmap `found` and sits where the
+    /// pose puts it (or the predicted frame where the image shows one there: the outline
+    /// was bent by an occluder); `None` rejects the reading.
+    fn confirmed_frame(&self, grid: &WindowGrid, q: Quad, found: &Match) -> Option<Quad> {
+        let (center, period) = (grid.center, grid.period);
+        if !self.frame_fits(&q, &grid.planes, self.shapes[found.bitmap].0) {
+            log::debug!(
+                "stamp at {center:?}: frame size does not fit bitmap {}",
+                found.bitmap
+            );
+            return None;
+        }
+        let predicted = self.predicted_frame(found, &grid.planes, grid.origin)?;
+        // Centres, not corners: perspective bends the corners away from the affine view of
+        // the phase planes (0.6 period on stamp1.png), not the centre.
+        let offset = (q.center() - predicted.center()).norm() / period;
+        let mut frame = q;
+        if offset > self.params.max_frame_offset {
+            // The outline found may be bent by an occluder stuck to the frame: the image
+            // must then show the frame where the pose puts it, not a period away.
+            // (A frame is drawn in the dots' material.)
+            if !predicted.edges_confirmed(grid.image, grid.polarity, period) {
                 log::debug!(
-                    "stamp at {center:?}: frame size does not fit bitmap {}",
-                    found.bitmap
+                    "stamp at {center:?}: the pose puts the frame {offset:.2} periods from \
+                     the one found (max_frame_offset {}) and the image shows no frame there",
+                    self.params.max_frame_offset
                 );
-                return Ok(None);
-            }
-            let Some(predicted) = self.predicted_frame(&found, &planes, origin) else {
-                return Ok(None);
-            };
-            // Centres, not corners: perspective bends the corners away from the affine view of
-            // the phase planes (0.6 period on stamp1.png), not the centre.
-            let offset = (q.center() - predicted.center()).norm() / period;
-            if offset > self.params.max_frame_offset {
-                // The outline found may be bent by an occluder stuck to the frame: the image
-                // must then show the frame where the pose puts it, not a period away.
-                // (A frame is drawn in the dots' material.)
-                if !predicted.edges_confirmed(image, polarity, period) {
-                    log::debug!(
-                        "stamp at {center:?}: the pose puts the frame {offset:.2} periods from \
-                         the one found (max_frame_offset {}) and the image shows no frame there",
-                        self.params.max_frame_offset
-                    );
-                    return Ok(None);
-                }
-                log::debug!(
-                    "stamp at {center:?}: the outline found is {offset:.2} periods off, the \
-                     frame is where the pose puts it (outline bent by an occluder)"
-                );
-                frame = Some(predicted);
+                return None;
             }
             log::debug!(
-                "stamp at {center:?}: bitmap {} (correlation {:.3}, confidence {:.3}, frame \
-                 offset {offset:.2} periods)",
-                found.bitmap,
-                found.correlation,
-                found.vote
+                "stamp at {center:?}: the outline found is {offset:.2} periods off, the \
+                 frame is where the pose puts it (outline bent by an occluder)"
             );
+            frame = predicted;
         }
-        Ok(Some(WindowReading {
-            found,
-            planes,
-            origin,
-            frame,
-            center,
-            size,
-            analysis,
-            polarity,
-        }))
+        log::debug!(
+            "stamp at {center:?}: bitmap {} (correlation {:.3}, confidence {:.3}, frame \
+             offset {offset:.2} periods)",
+            found.bitmap,
+            found.correlation,
+            found.vote
+        );
+        Some(frame)
     }
 
     /// How far from the window centre the bitmap's central dot is searched for, thumbnail

@@ -714,28 +714,9 @@ impl QuadFinder {
                 continue;
             }
             for level in 0..=params.levels.min(5) {
-                let mut mask = std::mem::take(&mut self.level);
-                mask.clone_from(&self.masks[m]);
-                let radius = (1usize << level) - 1;
-                if radius > 0 {
-                    // Closing (bridges dark cuts, fills the stamp), then a twice wider opening
-                    // (drops bright lines and specks, even those the closing merged with a
-                    // dark line between them: the two halo bands along a hair).
-                    mask.dilate(radius, &mut self.tmp);
-                    mask.erode(radius, &mut self.tmp);
-                    mask.erode(2 * radius + 1, &mut self.tmp);
-                    mask.dilate(2 * radius + 1, &mut self.tmp);
-                }
-                let level_min = min_side.max(SIDE_PER_RADIUS * radius as f64);
-                mask.runs(&mut self.runs);
-                self.level = mask;
-                // An opening by radius ρ rounds the corners: the outline leaves them by ~0.4 ρ.
-                let slack = if radius > 0 {
-                    0.45 * (2 * radius + 1) as f64
-                } else {
-                    0.0
-                };
-                for q in self.outlines(sw, sh, level_min, params.outline_tolerance, slack) {
+                let outlines =
+                    self.level_outlines(m, level, (sw, sh), min_side, params.outline_tolerance);
+                for q in outlines {
                     let quad = Quad {
                         // Decimated pixel centre i covers input pixels i·f .. i·f + f − 1.
                         corners: q.map(|c| c * scale + Vector2::repeat((scale - 1.0) / 2.0)),
@@ -757,23 +738,44 @@ impl QuadFinder {
                 }
             }
         }
-        let mut candidates: Vec<Candidate> = Vec::with_capacity(found.len());
-        for (coarse, polarity) in found {
-            // The decimated outline is good to a decimated pixel or so.
-            let search = (frame_fraction * coarse.mean_side() / 2.0).max(1.5 * scale);
-            let quad = coarse.refined(image, polarity, search).unwrap_or(coarse);
-            // Outlines of one frame found at several levels, distorted differently, refine to
-            // the same one; distinct ones (a frame and a bent outline of it) are all kept.
-            let tol = 1.0 + 0.005 * quad.mean_side();
-            if !candidates
-                .iter()
-                .any(|c| c.polarity == polarity && c.quad.corner_distance(&quad) <= tol)
-            {
-                candidates.push(Candidate { quad, polarity });
-            }
-        }
+        let mut candidates = refined_candidates(image, found, frame_fraction, scale);
         order_candidates(&mut candidates, frame_fractions);
         candidates
+    }
+
+    /// Outlines (decimated pixels) in mask `m` (0 bright, 1 dark) of the `sw × sh` decimated
+    /// image at morphological `level` (closing then opening of radius `2^level − 1`), of
+    /// sides ≥ `min_side` and what that radius can bridge.
+    fn level_outlines(
+        &mut self,
+        m: usize,
+        level: usize,
+        (sw, sh): (usize, usize),
+        min_side: f64,
+        tolerance: f64,
+    ) -> Vec<[Vector2<f64>; 4]> {
+        let mut mask = std::mem::take(&mut self.level);
+        mask.clone_from(&self.masks[m]);
+        let radius = (1usize << level) - 1;
+        if radius > 0 {
+            // Closing (bridges dark cuts, fills the stamp), then a twice wider opening
+            // (drops bright lines and specks, even those the closing merged with a
+            // dark line between them: the two halo bands along a hair).
+            mask.dilate(radius, &mut self.tmp);
+            mask.erode(radius, &mut self.tmp);
+            mask.erode(2 * radius + 1, &mut self.tmp);
+            mask.dilate(2 * radius + 1, &mut self.tmp);
+        }
+        let level_min = min_side.max(SIDE_PER_RADIUS * radius as f64);
+        mask.runs(&mut self.runs);
+        self.level = mask;
+        // An opening by radius ρ rounds the corners: the outline leaves them by ~0.4 ρ.
+        let slack = if radius > 0 {
+            0.45 * (2 * radius + 1) as f64
+        } else {
+            0.0
+        };
+        self.outlines(sw, sh, level_min, tolerance, slack)
     }
 
     /// Block means of `f × f` pixels into `self.small` (`sw × sh`).
@@ -831,44 +833,14 @@ impl QuadFinder {
         let small = small.pixels();
         // Box sums: horizontal running sums per row, then vertical running sums of those
         // (f32 is plenty: a few hundred terms of values in [0, 1]).
-        self.row_sums.clear();
-        self.row_sums.resize(sw * sh, 0.0);
-        self.prefix.clear();
-        self.prefix.resize(sw + 1, 0.0);
-        for (row, out) in small
-            .chunks_exact(sw)
-            .zip(self.row_sums.chunks_exact_mut(sw))
-        {
-            // Window sums from prefix sums (values in [0, 1]: f32 keeps ~1e-4 over a row).
-            // The mean of values clipped to the robust range: a thin thing far darker or
-            // brighter than the rest (a hair, a speck) does not pull it, which would draw a
-            // halo of the other colour around it, joined to the frames it crosses.
-            let (lo, hi) = clip.unwrap_or((f32::NEG_INFINITY, f32::INFINITY));
-            let mut acc = 0.0f32;
-            for (p, &v) in self.prefix[1..].iter_mut().zip(row) {
-                acc += v.clamp(lo, hi);
-                *p = acc;
-            }
-            // Sum over [c − half, c + half] ∩ [0, sw): clipped at the ends, plain in between
-            // (that loop vectorises).
-            let p = &self.prefix;
-            let first = half.min(sw);
-            let last = sw.saturating_sub(half + 1).max(first);
-            for (c, o) in out[..first].iter_mut().enumerate() {
-                *o = p[(c + half + 1).min(sw)];
-            }
-            if first < last {
-                for (o, (hi, lo)) in out[first..last]
-                    .iter_mut()
-                    .zip(p[first + half + 1..].iter().zip(&p[first - half..]))
-                {
-                    *o = hi - lo;
-                }
-            }
-            for (c, o) in out.iter_mut().enumerate().skip(last) {
-                *o = p[(c + half + 1).min(sw)] - p[c.saturating_sub(half)];
-            }
-        }
+        row_box_sums(
+            small,
+            (sw, sh),
+            half,
+            clip,
+            &mut self.prefix,
+            &mut self.row_sums,
+        );
         // Inverse of the pixels under the window at each column (times its rows, per row).
         self.col_counts.clear();
         self.col_counts.extend(
@@ -1034,6 +1006,79 @@ impl QuadFinder {
             .enumerate()
             .filter_map(|(i, e)| e.map(|e| (i as u32, e)))
             .collect()
+    }
+}
+
+/// The coarse outlines `found` refined on `image` (an edge search of half the thinnest
+/// frame, `frame_fraction` of the side), outlines refining to the same frame kept once.
+fn refined_candidates(
+    image: &GreyImage,
+    found: Vec<(Quad, Polarity)>,
+    frame_fraction: f64,
+    scale: f64,
+) -> Vec<Candidate> {
+    let mut candidates: Vec<Candidate> = Vec::with_capacity(found.len());
+    for (coarse, polarity) in found {
+        // The decimated outline is good to a decimated pixel or so.
+        let search = (frame_fraction * coarse.mean_side() / 2.0).max(1.5 * scale);
+        let quad = coarse.refined(image, polarity, search).unwrap_or(coarse);
+        // Outlines of one frame found at several levels, distorted differently, refine to
+        // the same one; distinct ones (a frame and a bent outline of it) are all kept.
+        let tol = 1.0 + 0.005 * quad.mean_side();
+        if !candidates
+            .iter()
+            .any(|c| c.polarity == polarity && c.quad.corner_distance(&quad) <= tol)
+        {
+            candidates.push(Candidate { quad, polarity });
+        }
+    }
+    candidates
+}
+
+/// Horizontal box sums of each row of the `sw × sh` image `small` over `[c − half, c + half]`
+/// (clipped at the ends), of values clipped to `clip`, into `row_sums`.
+fn row_box_sums(
+    small: &[f32],
+    (sw, sh): (usize, usize),
+    half: usize,
+    clip: Option<(f32, f32)>,
+    prefix: &mut Vec<f32>,
+    row_sums: &mut Vec<f32>,
+) {
+    row_sums.clear();
+    row_sums.resize(sw * sh, 0.0);
+    prefix.clear();
+    prefix.resize(sw + 1, 0.0);
+    for (row, out) in small.chunks_exact(sw).zip(row_sums.chunks_exact_mut(sw)) {
+        // Window sums from prefix sums (values in [0, 1]: f32 keeps ~1e-4 over a row).
+        // The mean of values clipped to the robust range: a thin thing far darker or
+        // brighter than the rest (a hair, a speck) does not pull it, which would draw a
+        // halo of the other colour around it, joined to the frames it crosses.
+        let (lo, hi) = clip.unwrap_or((f32::NEG_INFINITY, f32::INFINITY));
+        let mut acc = 0.0f32;
+        for (p, &v) in prefix[1..].iter_mut().zip(row) {
+            acc += v.clamp(lo, hi);
+            *p = acc;
+        }
+        // Sum over [c − half, c + half] ∩ [0, sw): clipped at the ends, plain in between
+        // (that loop vectorises).
+        let p = &*prefix;
+        let first = half.min(sw);
+        let last = sw.saturating_sub(half + 1).max(first);
+        for (c, o) in out[..first].iter_mut().enumerate() {
+            *o = p[(c + half + 1).min(sw)];
+        }
+        if first < last {
+            for (o, (hi, lo)) in out[first..last]
+                .iter_mut()
+                .zip(p[first + half + 1..].iter().zip(&p[first - half..]))
+            {
+                *o = hi - lo;
+            }
+        }
+        for (c, o) in out.iter_mut().enumerate().skip(last) {
+            *o = p[(c + half + 1).min(sw)] - p[c.saturating_sub(half)];
+        }
     }
 }
 
