@@ -397,8 +397,8 @@ pub fn specs() -> Vec<ParamSpec> {
             "pose_3d",
             V::Boolean(false),
             "Also measure the out-of-plane angles (pitch, roll) from the phase planes, with \
-             their covariance (Megarena only; other marker types ignore it and publish \
-             planar poses, pitch and roll variances 1e6).",
+             their covariance (Megarena only: with another marker type the detector is \
+             refused with the reason, never silently planar).",
         ),
         spec(
             "field_fit",

@@ -186,7 +186,8 @@ pub struct DetectorSettings {
     /// `false`: planar poses, `beta = gamma = 0`.
     ///
     /// Only observable for Megarena patterns (their two absolute phase planes fix the affine
-    /// map pattern → image); **ignored for the other marker types**, whose poses stay planar.
+    /// map pattern → image); for the other marker types it is refused
+    /// ([`DetectorSettings::to_config`] errs on parameter `pose_3d`), never silently planar.
     /// When set, each [`MarkerPose::pose`] is the orthographic out-of-plane solution:
     /// `beta` (about the pattern's intrinsic y axis) and `gamma` (about its intrinsic x axis),
     /// radians, in the frames of [`crate::pose`] (`cTp = Rz(α)·Ry(β)·Rx(γ)·Trans(x, y, 0)`,
@@ -272,6 +273,14 @@ impl DetectorSettings {
                 .map(|p| crate::layout::Layout::period(p.layout()))
         });
         let pattern = pattern.as_ref();
+        if self.pose_3d && kind != MarkerKind::Megarena {
+            // Never silently planar: the caller asked for tilt that is not measured.
+            return Err(Error::parameter(
+                "pose_3d",
+                "out-of-plane angles (beta, gamma) are measured for Megarena patterns only; \
+                 HP codes, stamps and periodic grids give planar poses: leave pose_3d off",
+            ));
+        }
         match kind {
             MarkerKind::Periodic => {
                 let mut p = PeriodicParams::new(required_period(period)?);
@@ -792,6 +801,33 @@ mod tests {
             measured_pixel_size: 0.5,
             pixel_size_std: 0.0,
         }
+    }
+
+    /// `pose_3d` on a marker type whose tilt is not measured is refused with the parameter's
+    /// name, never silently planar; Megarena takes it.
+    #[test]
+    fn pose_3d_is_refused_where_tilt_is_not_measured() {
+        for kind in [MarkerKind::Periodic, MarkerKind::HpCode, MarkerKind::Stamp] {
+            let settings = DetectorSettings {
+                pattern_type: kind,
+                period: Some(10.0),
+                code_size: Some(33),
+                pose_3d: true,
+                ..DetectorSettings::default()
+            };
+            match settings.to_config() {
+                Err(e) => assert!(e.to_string().contains("pose_3d"), "{kind:?}: {e}"),
+                Ok(_) => panic!("{kind:?}: pose_3d accepted"),
+            }
+        }
+        let megarena = DetectorSettings {
+            pattern_type: MarkerKind::Megarena,
+            period: Some(10.0),
+            code_depth: Some(8),
+            pose_3d: true,
+            ..DetectorSettings::default()
+        };
+        assert!(megarena.to_config().is_ok());
     }
 
     #[test]
