@@ -696,7 +696,7 @@ fn pose_3d_covariance_matches_the_spread_over_noisy_renders() {
 }
 
 #[test]
-fn pose_3d_setting_is_off_by_default_and_ignored_for_other_types() {
+fn pose_3d_setting_is_off_by_default_and_refused_for_other_types() {
     let layout = MegarenaLayout::new(10.0, 8).unwrap();
     let truth = Pose {
         x: -3000.0,
@@ -725,28 +725,19 @@ fn pose_3d_setting_is_off_by_default_and_ignored_for_other_types() {
     );
     let cov = m.covariance(10.0, 512.0);
     assert_eq!((cov[3][3], cov[4][4]), (1e6, 1e6));
-    // A periodic grid has no absolute planes to tilt: the setting changes nothing.
-    let grid = vernier::layout::PeriodicLayout::new(10.0, 61, 61).unwrap();
-    let image = render(
-        &grid,
-        &Pose::planar(2.0, -1.0, 0.3, 1.2),
-        &options(512, 0.0, 0),
-    )
-    .unwrap();
+    // A periodic grid has no absolute planes to tilt: the setting is refused, naming itself,
+    // rather than giving silently planar poses.
     let periodic = |pose_3d| DetectorSettings {
         pattern_type: MarkerKind::Periodic,
         period: Some(10.0),
         pose_3d,
         ..Default::default()
     };
-    let detect = |s: DetectorSettings| {
-        Detector::new(s.to_config().unwrap())
-            .unwrap()
-            .detect(&image)
-            .unwrap()
-    };
-    assert_eq!(detect(periodic(true)), detect(periodic(false)));
-    assert_eq!(detect(periodic(true))[0].pose_3d_cue_strength, None);
+    assert!(periodic(false).to_config().is_ok());
+    match periodic(true).to_config() {
+        Err(e) => assert!(e.to_string().contains("pose_3d"), "{e}"),
+        Ok(_) => panic!("pose_3d accepted for a periodic grid"),
+    }
 }
 
 /// Orthographic out-of-plane angles `(|β|, |γ|)` and pixel size by the formula of the
