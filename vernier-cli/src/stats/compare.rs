@@ -201,7 +201,9 @@ fn fmt(v: f64) -> String {
     let a = v.abs();
     if !v.is_finite() {
         "-".into()
-    } else if a == 0.0 || (1e-3..1e6).contains(&a) {
+    } else if a == 0.0 {
+        "0".into()
+    } else if (1e-3..1e6).contains(&a) {
         let decimals = (3 - a.log10().floor() as i32).clamp(0, 6) as usize;
         format!("{v:.decimals$}")
     } else {
