@@ -128,25 +128,7 @@ fn reference_as_pose_table(path: &std::path::Path) {
 #[test]
 fn the_real_sequence_against_the_original() {
     let dir = scratch("stats_real");
-    let images: Vec<String> = (96..=105)
-        .map(|n| {
-            let path = common::data_dir().join(format!("hpcode/Image{n}.png"));
-            path.to_string_lossy().into_owned()
-        })
-        .collect();
-    let mut detect = vernier();
-    detect.args([
-        "detect",
-        "--hpcode",
-        "--period",
-        "15.5",
-        "--code-size",
-        "33",
-        "--format",
-        "csv",
-    ]);
-    detect.args(&images);
-    std::fs::write(dir.join("ours.csv"), stdout_of_success(&mut detect)).unwrap();
+    detect_sequence(&dir.join("ours.csv"), 96..=105, &[]);
     reference_as_pose_table(&dir.join("original.csv"));
     let table = stats_against(&dir.join("ours.csv"), &dir.join("original.csv"));
     println!("{table}");
@@ -312,9 +294,10 @@ fn several_tables_need_common_markers_and_no_against() {
     assert!(table.contains("opposite sign conventions"), "{table}");
 }
 
-/// `vernier detect` of `Image96`–`Image125` with `extra` options, as a CSV table in `path`.
-fn detect_sequence(path: &std::path::Path, extra: &[&str]) {
-    let images: Vec<String> = (96..=125)
+/// `vernier detect` of the real sequence's `frames` (`Image96`–`Image125`) with `extra`
+/// options, as a CSV table in `path`.
+fn detect_sequence(path: &std::path::Path, frames: std::ops::RangeInclusive<u32>, extra: &[&str]) {
+    let images: Vec<String> = frames
         .map(|n| {
             let path = common::data_dir().join(format!("hpcode/Image{n}.png"));
             path.to_string_lossy().into_owned()
@@ -340,9 +323,10 @@ fn the_real_sequence_three_cornered_hat() {
     // quantity get each series' noise and an own-noise figure (or a reported negative one).
     // Precision figures are printed, not asserted (docs/accuracy.md states them).
     let dir = scratch("stats_hat_real");
-    detect_sequence(&dir.join("default.csv"), &[]);
+    detect_sequence(&dir.join("default.csv"), 96..=125, &[]);
     detect_sequence(
         &dir.join("w512.csv"),
+        96..=125,
         &["--window-size", "512", "--no-field-fit"],
     );
     let reference = common::data_dir().join("hpcode/Image96-125_reference.csv");
