@@ -7,11 +7,12 @@
 //! `vernier-interface` crate, shared with `vernier bag` and re-exported here as [`messages`],
 //! [`params`], [`processing`] and [`ros_args`]. This crate is the DDS glue:
 //! [`param_services`] (`ros2 param`), [`diagnostics`], [`discovery`] (the ROS discovery
-//! environment variables) and [`node`] (DDS wiring).
+//! environment variables), [`memory`] (freed memory handed back) and [`node`] (DDS wiring).
 pub mod diagnostics;
 pub mod discovery;
 #[cfg(test)]
 mod fuzz_tests;
+pub mod memory;
 pub mod node;
 pub mod param_services;
 pub use vernier_interface::{messages, params, processing, ros_args};

@@ -366,6 +366,7 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
 
     // Main thread: diagnostics and debug-image demand.
     let debug_topic = topic("~/debug_image");
+    let mut memory = crate::memory::MemoryRelease::default();
     loop {
         std::thread::sleep(DIAGNOSTICS_PERIOD);
         let wanted = lock(&node).subscription_count(&debug_topic) > 0;
@@ -379,6 +380,7 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
         if let Err(e) = diagnostics.publish(report) {
             warn!("cannot publish diagnostics: {}", write_failure(&e));
         }
+        memory.when_due(Instant::now());
     }
 }
 
