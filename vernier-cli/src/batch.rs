@@ -83,6 +83,7 @@ pub fn detect_files(
     let mut table = TableWriter::new(BufWriter::new(stdout), format).map_err(io_error)?;
     let progress = progress_bar(images.len() as u64, "images");
     let mut failures = 0;
+    let period = detectors.first().map_or(f64::NAN, Detector::period);
     let mut write = |frame: usize,
                      (result, time_ms): Outcome,
                      image: Option<&GreyImage>|
@@ -105,6 +106,7 @@ pub fn detect_files(
             &path.display().to_string(),
             &result,
             time_ms,
+            period,
         );
         table.write(&rows).map_err(io_error)?;
         progress.inc(1);

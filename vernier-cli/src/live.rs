@@ -116,6 +116,7 @@ pub fn run(args: &LiveArgs) -> Result<ExitCode, String> {
         table: &mut table,
         preview: preview.as_mut(),
         rerun: rerun.as_mut(),
+        period: detector.period(),
     };
     let label = source.to_string();
     let ending = loop {
@@ -175,6 +176,8 @@ struct Sinks<'a> {
     table: &'a mut output::LiveTable,
     preview: Option<&'a mut display::Preview>,
     rerun: Option<&'a mut RerunLog>,
+    /// The pattern's period, pattern units (the rows' predicted σ).
+    period: f64,
 }
 
 impl Sinks<'_> {
@@ -193,6 +196,7 @@ impl Sinks<'_> {
             label,
             &analysed.result,
             analysed.time_ms,
+            self.period,
         );
         let latency_ms = frame.captured.elapsed().as_secs_f64() * 1e3;
         self.table.write(&rows, latency_ms)?;

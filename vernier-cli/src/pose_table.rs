@@ -66,6 +66,17 @@ pub struct PoseRow {
     /// Standard deviation of `measured_pixel_size`, pattern units per pixel.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pixel_size_std: Option<f64>,
+    /// Predicted standard deviations of `x`, `y` (pattern units) and `alpha` (rad): the
+    /// diagonal of [`MarkerPose::covariance`] (white noise through the fit,
+    /// docs/design/phase.md#uncertainty); JSON and JSON Lines only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub x_std: Option<f64>,
+    /// See [`PoseRow::x_std`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub y_std: Option<f64>,
+    /// See [`PoseRow::x_std`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alpha_std: Option<f64>,
 }
 
 /// Column names, in order.
@@ -92,12 +103,14 @@ pub const COLUMNS: [&str; 18] = [
 
 impl PoseRow {
     /// The rows of one frame: one per marker, or one empty row (with the error, if any).
+    /// `period`: the pattern's period (pattern units), for the predicted σ columns.
     pub fn from_result(
         frame: u64,
         stamp: Option<f64>,
         source: &str,
         result: &Result<Vec<MarkerPose>, String>,
         time_ms: f64,
+        period: f64,
     ) -> Vec<PoseRow> {
         let base = PoseRow {
             frame,
@@ -111,6 +124,8 @@ impl PoseRow {
                 .iter()
                 .map(|m| {
                     let p = &m.pose;
+                    let cov = m.covariance(period, m.window_px as f64);
+                    let std = |k: usize| Some(cov[k][k].sqrt()).filter(|s| s.is_finite());
                     PoseRow {
                         id: Some(m.id),
                         x: Some(p.x),
@@ -128,6 +143,9 @@ impl PoseRow {
                         pose_3d_cue_strength: m.pose_3d_cue_strength,
                         measured_pixel_size: Some(m.measured_pixel_size),
                         pixel_size_std: Some(m.pixel_size_std),
+                        x_std: std(0),
+                        y_std: std(1),
+                        alpha_std: std(5),
                         ..base.clone()
                     }
                 })
@@ -180,12 +198,14 @@ fn csv_escape(s: &str) -> String {
 pub enum TableFormat {
     /// One JSON object per image: `image`, `markers` (each with `id`, `x`, `y`, `z`, `alpha`,
     /// `beta`, `gamma`, `pixel_size`, `x_px`, `y_px`, `quality`, `duplicate_id`,
-    /// `decode_confidence`, `measured_pixel_size`, `pixel_size_std`, and
-    /// `pose_3d_cue_strength` with `--pose-3d`), `time_ms` and, for a failed image, `error`.
+    /// `decode_confidence`, `measured_pixel_size`, `pixel_size_std`, the predicted σ
+    /// `x_std`, `y_std`, `alpha_std`, and `pose_3d_cue_strength` with `--pose-3d`), `time_ms`
+    /// and, for a failed image, `error`.
     Json,
     /// Comma-separated values with a header line, one row per image and marker.
     Csv,
-    /// JSON Lines: one JSON object per image and marker, same columns as CSV.
+    /// JSON Lines: one JSON object per image and marker, the CSV's columns and the JSON's
+    /// extra fields (`measured_pixel_size`, `pixel_size_std`, `x_std`, `y_std`, `alpha_std`).
     Jsonl,
 }
 
@@ -245,6 +265,15 @@ impl<W: Write> TableWriter<W> {
                 if let (Some(s), Some(std)) = (r.measured_pixel_size, r.pixel_size_std) {
                     m["measured_pixel_size"] = serde_json::json!(s);
                     m["pixel_size_std"] = serde_json::json!(std);
+                }
+                for (key, std) in [
+                    ("x_std", r.x_std),
+                    ("y_std", r.y_std),
+                    ("alpha_std", r.alpha_std),
+                ] {
+                    if let Some(std) = std {
+                        m[key] = serde_json::json!(std);
+                    }
                 }
                 m
             })
@@ -413,6 +442,42 @@ mod tests {
             w.finish().unwrap();
             let text = String::from_utf8(bytes).unwrap();
             assert_eq!(read_table(&text).unwrap(), sample(), "{format:?}:\n{text}");
+        }
+    }
+
+    #[test]
+    fn rows_carry_the_predicted_sigmas_of_the_covariance() {
+        let (phase_std, period) = ([2e-3, 1e-3], 10.0);
+        let marker = MarkerPose {
+            id: 7,
+            pose: vernier::Pose::planar(1.0, 2.0, 0.0, 0.5),
+            origin_px: Default::default(),
+            quality: 0.9,
+            phase_std,
+            duplicate_id: false,
+            decode_confidence: Some(1.0),
+            pose_3d_cue_strength: None,
+            window_px: 256,
+            yaw_std: Some(5e-6),
+            measured_pixel_size: 0.5,
+            pixel_size_std: 1e-6,
+        };
+        let rows = PoseRow::from_result(0, None, "a.png", &Ok(vec![marker]), 1.0, period);
+        let row = &rows[0];
+        // alpha = 0: x along the first plane's axis, σ = P·σ_c/2π.
+        let tau = std::f64::consts::TAU;
+        assert!((row.x_std.unwrap() - period * phase_std[0] / tau).abs() < 1e-15);
+        assert!((row.y_std.unwrap() - period * phase_std[1] / tau).abs() < 1e-15);
+        assert_eq!(row.alpha_std, Some(5e-6));
+        for format in [TableFormat::Json, TableFormat::Jsonl] {
+            let mut bytes = Vec::new();
+            let mut w = TableWriter::new(&mut bytes, format).unwrap();
+            w.write(&rows).unwrap();
+            w.finish().unwrap();
+            let text = String::from_utf8(bytes).unwrap();
+            for key in ["\"x_std\"", "\"y_std\"", "\"alpha_std\""] {
+                assert!(text.contains(key), "{format:?}: {text}");
+            }
         }
     }
 

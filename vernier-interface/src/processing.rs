@@ -132,6 +132,11 @@ impl Processor {
         &self.params
     }
 
+    /// Physical period of the pattern in use, pattern units (the raw markers' units).
+    pub fn period(&self) -> f64 {
+        self.config.period()
+    }
+
     /// Generation of the parameters in use.
     pub fn generation(&self) -> u64 {
         self.generation

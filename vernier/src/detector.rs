@@ -615,6 +615,12 @@ impl Detector {
         self
     }
 
+    /// Physical period of the pattern, pattern units: with [`MarkerPose::covariance`], the
+    /// σ of each marker's position.
+    pub fn period(&self) -> f64 {
+        self.period
+    }
+
     /// What every frame's markers go through last: duplicate IDs flagged, the measured
     /// scale's σ, and the calibrated scale applied.
     fn finish(&self, mut markers: Vec<MarkerPose>) -> Vec<MarkerPose> {

@@ -769,14 +769,15 @@ impl Measure<'_> {
                 let tilt = fit.perspective.unwrap_or_default();
                 log::debug!(
                     "marker {}: field fit over {} px, {} harmonics, {} iterations, {:.1} % inliers, \
-                         residual σ {:.2e}, orientation σ {:.2e} rad, perspective ({:.2e}, \
-                         {:.2e}) per period taken at {:.3}",
+                         residual σ {:.2e} ({:.2} × the white noise's), orientation σ {:.2e} rad, \
+                         perspective ({:.2e}, {:.2e}) per period taken at {:.3}",
                     id,
                     fit.pixels,
                     fit.harmonics,
                     fit.iterations,
                     100.0 * fit.inlier_fraction,
                     fit.residual_std,
+                    fit.model_error_ratio(),
                     fit.mean_direction_std(),
                     tilt.x,
                     tilt.y,

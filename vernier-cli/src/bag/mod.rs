@@ -252,7 +252,9 @@ impl Replay {
                     (_, Some(e)) => Err(e),
                     (Err(e), None) => Err(e.clone()),
                 };
-                let rows = PoseRow::from_result(self.frame, stamp, topic, &markers, time_ms);
+                let period = self.processor.period();
+                let rows =
+                    PoseRow::from_result(self.frame, stamp, topic, &markers, time_ms, period);
                 table
                     .write(&rows)
                     .map_err(|e| format!("cannot write the output: {e}"))?;
