@@ -66,9 +66,9 @@ pub struct PoseRow {
     /// Standard deviation of `measured_pixel_size`, pattern units per pixel.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pixel_size_std: Option<f64>,
-    /// Predicted standard deviations of `x`, `y` (pattern units) and `alpha` (rad): the
-    /// diagonal of [`MarkerPose::covariance`] (white noise through the fit,
-    /// docs/design/phase.md#uncertainty); JSON and JSON Lines only.
+    /// Predicted standard deviations of `x`, `y` (pattern units) and `alpha` (rad), from
+    /// the image's white noise through the fit (docs/design/phase.md#uncertainty; see
+    /// [`predicted_std`]); JSON and JSON Lines only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub x_std: Option<f64>,
     /// See [`PoseRow::x_std`].
@@ -124,8 +124,8 @@ impl PoseRow {
                 .iter()
                 .map(|m| {
                     let p = &m.pose;
-                    let cov = m.covariance(period, m.window_px as f64);
-                    let std = |k: usize| Some(cov[k][k].sqrt()).filter(|s| s.is_finite());
+                    let [x_std, y_std, alpha_std] =
+                        predicted_std(m, period).map(|s| Some(s).filter(|s| s.is_finite()));
                     PoseRow {
                         id: Some(m.id),
                         x: Some(p.x),
@@ -143,9 +143,9 @@ impl PoseRow {
                         pose_3d_cue_strength: m.pose_3d_cue_strength,
                         measured_pixel_size: Some(m.measured_pixel_size),
                         pixel_size_std: Some(m.pixel_size_std),
-                        x_std: std(0),
-                        y_std: std(1),
-                        alpha_std: std(5),
+                        x_std,
+                        y_std,
+                        alpha_std,
                         ..base.clone()
                     }
                 })
@@ -182,6 +182,33 @@ impl PoseRow {
             csv_escape(self.error.as_deref().unwrap_or("")),
         ]
     }
+}
+
+/// The σ of a marker's printed `x`, `y` (pattern units) and `alpha` (rad). `x`, `y` are the
+/// pattern-frame coordinates of the pattern origin seen from the image centre,
+/// `Rz(−α)·t/s` for the camera-frame translation `t` (pixels) and the scale `s`, so besides
+/// the phase offsets' σ along the pattern axes (`P·σ_c/2π`, [`MarkerPose::covariance`]) an
+/// orientation error `δα` turns them by `(y·δα, −x·δα)` and a relative scale error `ε`
+/// stretches them by `(x·ε, y·ε)` (the marker's measured scale, `pixel_size_std`; a
+/// calibrated `--pixel-size` counts as exact). Slope noise moves a phase gradient's direction
+/// and length independently, so the three add in quadrature. A marker 620 µm from the image
+/// centre with `σ_α` = 10 µrad and `ε` = 1e-5 gets 6e-3 µm from each, four times its offsets'
+/// 1.5e-3 µm (`Image96`–`Image125`).
+pub fn predicted_std(m: &MarkerPose, period: f64) -> [f64; 3] {
+    let cov = m.covariance(period, m.window_px as f64);
+    let alpha = cov[5][5].sqrt();
+    let scale = if m.pose.pixel_size == m.measured_pixel_size && m.measured_pixel_size > 0.0 {
+        m.pixel_size_std / m.measured_pixel_size
+    } else {
+        0.0
+    };
+    let along = m.phase_std.map(|s| period * s / std::f64::consts::TAU);
+    let (x, y) = (m.pose.x, m.pose.y);
+    [
+        along[0].hypot(alpha * y).hypot(scale * x),
+        along[1].hypot(alpha * x).hypot(scale * y),
+        alpha,
+    ]
 }
 
 /// Quotes a CSV field when it holds a comma, quote or line break.
@@ -464,10 +491,16 @@ mod tests {
         };
         let rows = PoseRow::from_result(0, None, "a.png", &Ok(vec![marker]), 1.0, period);
         let row = &rows[0];
-        // alpha = 0: x along the first plane's axis, σ = P·σ_c/2π.
+        // Along the pattern axes σ = P·σ_c/2π; the orientation's σ times the other
+        // coordinate (x = 1, y = 2) and the relative scale σ (1e-6 / 0.5) times the same one
+        // add in quadrature.
         let tau = std::f64::consts::TAU;
-        assert!((row.x_std.unwrap() - period * phase_std[0] / tau).abs() < 1e-15);
-        assert!((row.y_std.unwrap() - period * phase_std[1] / tau).abs() < 1e-15);
+        let along = phase_std.map(|s| period * s / tau);
+        let (turn, stretch) = (5e-6, 2e-6);
+        let x_std = along[0].hypot(turn * 2.0).hypot(stretch * 1.0);
+        let y_std = along[1].hypot(turn * 1.0).hypot(stretch * 2.0);
+        assert!((row.x_std.unwrap() - x_std).abs() < 1e-15);
+        assert!((row.y_std.unwrap() - y_std).abs() < 1e-15);
         assert_eq!(row.alpha_std, Some(5e-6));
         for format in [TableFormat::Json, TableFormat::Jsonl] {
             let mut bytes = Vec::new();

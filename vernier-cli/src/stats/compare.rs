@@ -84,8 +84,9 @@ fn image_number(name: &str) -> Option<u64> {
     name[start..end].parse().ok()
 }
 
-/// A marker's poses in one series: per key, the row's frame (for ordering) and `(x, y, α)`.
-type Poses = BTreeMap<Key, (u64, [f64; 3])>;
+/// A marker's poses in one series: per key, the row's frame (for ordering), `(x, y, α)` and
+/// their predicted σ (`x_std`, `y_std`, `alpha_std`; NaN where the table has none).
+type Poses = BTreeMap<Key, (u64, [f64; 3], [f64; 3])>;
 
 /// Every series' poses per marker ID, and how many rows were left out because their marker
 /// appears twice in one frame. Fails when two frames of a table share an image name (a bag
@@ -116,7 +117,8 @@ fn poses_by_marker(
                 };
                 let k = key(r);
                 let poses = markers.entry(id).or_default();
-                if let Some((frame, _)) = poses.insert(k.clone(), (r.frame, [x, y, alpha])) {
+                let std = [r.x_std, r.y_std, r.alpha_std].map(|s| s.unwrap_or(f64::NAN));
+                if let Some((frame, ..)) = poses.insert(k.clone(), (r.frame, [x, y, alpha], std)) {
                     if frame != r.frame {
                         return Err(format!(
                             "{}: frames {frame} and {} have the same image name `{}`: match \
@@ -159,40 +161,68 @@ impl Subject {
     /// Each series' samples of the subject over the keys where every series has it, in the
     /// first series' frame order.
     fn samples(self, series: &[BTreeMap<u64, Poses>]) -> Vec<Samples> {
-        let pose = |m: &BTreeMap<u64, Poses>, id: u64, k: &Key| -> Option<[f64; 3]> {
-            m.get(&id)?.get(k).map(|(_, p)| *p)
-        };
-        let at = |m: &BTreeMap<u64, Poses>, k: &Key| -> Option<[f64; 3]> {
-            match self {
-                Subject::Marker(id) => pose(m, id, k),
-                Subject::Pair(a, b) => {
-                    let ([xa, ya, aa], [xb, yb, ab]) = (pose(m, a, k)?, pose(m, b, k)?);
-                    let (dx, dy) = (xb - xa, yb - ya);
-                    let (s, c) = aa.sin_cos();
-                    Some([c * dx + s * dy, -s * dx + c * dy, wrap_angle(ab - aa)])
+        let keys = self.keys(series);
+        series
+            .iter()
+            .map(|m| {
+                let mut s = Samples::new(String::new());
+                for [x, y, alpha] in keys.iter().filter_map(|k| self.pose_at(m, k)) {
+                    s.push(x, y, alpha);
                 }
-            }
-        };
+                s
+            })
+            .collect()
+    }
+
+    /// Each series' median predicted σ of `(x, y, α)` over the subject's frames: a marker's
+    /// own (NaN where its table has none); NaN for a pair, whose σ the tables do not give.
+    fn predicted(self, series: &[BTreeMap<u64, Poses>]) -> Vec<[f64; 3]> {
+        let keys = self.keys(series);
+        series
+            .iter()
+            .map(|m| match self {
+                Subject::Marker(id) => [0, 1, 2].map(|q| {
+                    let mut v: Vec<f64> = keys
+                        .iter()
+                        .filter_map(|k| m.get(&id)?.get(k).map(|(.., std)| std[q]))
+                        .filter(|s| s.is_finite())
+                        .collect();
+                    v.sort_by(f64::total_cmp);
+                    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+                }),
+                Subject::Pair(..) => [f64::NAN; 3],
+            })
+            .collect()
+    }
+
+    /// The keys where every series has the subject, in the first series' frame order.
+    fn keys(self, series: &[BTreeMap<u64, Poses>]) -> Vec<Key> {
         let first_id = match self {
             Subject::Marker(id) | Subject::Pair(id, _) => id,
         };
         let mut keys: Vec<(u64, &Key)> = series
             .first()
             .and_then(|m| m.get(&first_id))
-            .map(|p| p.iter().map(|(k, (frame, _))| (*frame, k)).collect())
+            .map(|p| p.iter().map(|(k, (frame, ..))| (*frame, k)).collect())
             .unwrap_or_default();
-        keys.retain(|(_, k)| series.iter().all(|m| at(m, k).is_some()));
+        keys.retain(|(_, k)| series.iter().all(|m| self.pose_at(m, k).is_some()));
         keys.sort();
-        series
-            .iter()
-            .map(|m| {
-                let mut s = Samples::new(String::new());
-                for [x, y, alpha] in keys.iter().filter_map(|(_, k)| at(m, k)) {
-                    s.push(x, y, alpha);
-                }
-                s
-            })
-            .collect()
+        keys.into_iter().map(|(_, k)| k.clone()).collect()
+    }
+
+    /// The subject's `(x, y, α)` at key `k` in one series: a marker's pose, or marker `b` in
+    /// marker `a`'s frame.
+    fn pose_at(self, m: &BTreeMap<u64, Poses>, k: &Key) -> Option<[f64; 3]> {
+        let pose = |id: u64| -> Option<[f64; 3]> { m.get(&id)?.get(k).map(|(_, p, _)| *p) };
+        match self {
+            Subject::Marker(id) => pose(id),
+            Subject::Pair(a, b) => {
+                let ([xa, ya, aa], [xb, yb, ab]) = (pose(a)?, pose(b)?);
+                let (dx, dy) = (xb - xa, yb - ya);
+                let (s, c) = aa.sin_cos();
+                Some([c * dx + s * dy, -s * dx + c * dy, wrap_angle(ab - aa)])
+            }
+        }
     }
 }
 
@@ -220,8 +250,8 @@ fn noise_interval(sigma: f64, n: usize) -> String {
 }
 
 /// Prints the comparison of one quantity of one subject: `values[i]` is series `i`'s series
-/// (already scaled to the printed unit).
-fn print_quantity(title: &str, labels: &[char], values: &[&[f64]]) {
+/// and `predicted[i]` its median predicted σ (NaN: none), both in the printed unit.
+fn print_quantity(title: &str, labels: &[char], values: &[&[f64]], predicted: &[f64]) {
     let n = values.first().map_or(0, |v| v.len());
     println!("{title} · {n} frames");
     let hat = pair_variances(values).and_then(|pair| {
@@ -235,12 +265,18 @@ fn print_quantity(title: &str, labels: &[char], values: &[&[f64]]) {
     );
     for (i, (label, v)) in labels.iter().zip(values).enumerate() {
         let noise = second_difference_noise(v).unwrap_or(f64::NAN);
-        let own = match &hat {
+        let mut cell = match &hat {
             Some((pair, own, intervals)) => own_cell(i, labels, pair, own[i], intervals[i]),
             None => String::new(),
         };
+        if let Some(&p) = predicted.get(i).filter(|p| p.is_finite()) {
+            cell.push_str(&format!("   predicted σ {}", fmt(p)));
+            if let Some((_, own, _)) = hat.as_ref().filter(|(_, own, _)| own[i] > 0.0) {
+                cell.push_str(&format!(" (own/predicted {:.2})", own[i].sqrt() / p));
+            }
+        }
         println!(
-            "  {label:<8} {:>10} {:<22} {own}",
+            "  {label:<8} {:>10} {:<22} {cell}",
             fmt(noise),
             noise_interval(noise, n)
         );
@@ -419,9 +455,18 @@ fn print_subject(subject: Subject, series: &[BTreeMap<u64, Poses>], inputs: &[In
         ),
         ("alpha (µrad)", alpha.iter().map(Vec::as_slice).collect()),
     ];
-    for (quantity, values) in quantities {
+    let predicted = subject.predicted(series);
+    for (q, (quantity, values)) in quantities.into_iter().enumerate() {
+        // Alpha is printed in µrad.
+        let unit = if q == 2 { 1e6 } else { 1.0 };
+        let predicted: Vec<f64> = predicted.iter().map(|p| p[q] * unit).collect();
         println!();
-        print_quantity(&format!("{name} · {quantity}"), &labels, &values);
+        print_quantity(
+            &format!("{name} · {quantity}"),
+            &labels,
+            &values,
+            &predicted,
+        );
     }
 }
 
@@ -468,4 +513,13 @@ fn print_header(
         LEVEL * 100.0
     );
     println!("units: x, y in pattern units (µm for a period in µm), alpha in µrad");
+    if inputs
+        .iter()
+        .any(|i| i.rows.iter().any(|r| r.alpha_std.is_some()))
+    {
+        println!(
+            "predicted σ: the median over the frames of the σ a table gives (`x_std`, `y_std`, \
+             `alpha_std`: detect --format jsonl or json); honest when own/predicted is near 1"
+        );
+    }
 }
