@@ -96,28 +96,51 @@ impl Stats {
         topic: &str,
     ) -> DiagnosticArray {
         self.forget_before(now);
-        let span = now
-            .duration_since(self.started)
-            .min(WINDOW)
-            .as_secs_f64()
-            .max(1e-3);
-        let mut count = [0u64; 6];
-        let (mut processing, mut latency) = (Vec::new(), Vec::new());
+        let window = self.window_summary();
+        let (level, message) = self.status(now, topic, &window);
+        DiagnosticArray {
+            header: Header {
+                stamp,
+                frame_id: String::new(),
+            },
+            status: vec![DiagnosticStatus {
+                level,
+                name: format!("{node_name}: marker detection"),
+                message,
+                hardware_id: String::new(),
+                values: self.values(now, &window),
+            }],
+        }
+    }
+
+    /// Event counts and sorted timings of the current window.
+    fn window_summary(&self) -> WindowSummary {
+        let mut summary = WindowSummary {
+            count: [0; 6],
+            processing_ms: Vec::new(),
+            latency_ms: Vec::new(),
+        };
         for (_, e) in &self.events {
-            count[index(e)] += 1;
+            summary.count[index(e)] += 1;
             if let Event::Processed {
                 processing_ms,
                 latency_ms,
             } = e
             {
-                processing.push(*processing_ms);
-                latency.push(*latency_ms);
+                summary.processing_ms.push(*processing_ms);
+                summary.latency_ms.push(*latency_ms);
             }
         }
-        processing.sort_by(f64::total_cmp);
-        latency.sort_by(f64::total_cmp);
-        let [received, processed, dropped, rate_limited, bad, not_found] = count;
-        let (level, message) = match self.last_received {
+        summary.processing_ms.sort_by(f64::total_cmp);
+        summary.latency_ms.sort_by(f64::total_cmp);
+        summary
+    }
+
+    /// The status level ([`diagnostic_level`]) and message at `now`: no image at all (ERROR)
+    /// or for [`STALE_AFTER`], then bad messages, then dropped frames (WARN), in that order.
+    fn status(&self, now: Instant, topic: &str, window: &WindowSummary) -> (u8, String) {
+        let [_, _, dropped, _, bad, _] = window.count;
+        match self.last_received {
             None if now.duration_since(self.started) >= STALE_AFTER => (
                 diagnostic_level::ERROR,
                 format!("no image received on {topic} since start"),
@@ -149,47 +172,55 @@ impl Stats {
                 format!("waiting for images on {topic}"),
             ),
             Some(_) => (diagnostic_level::OK, "ok".to_string()),
-        };
+        }
+    }
+
+    /// The key/values of the status at `now`: rates (Hz) and timing percentiles (ms) over the
+    /// window, problem counts in the window, and counts since start.
+    fn values(&self, now: Instant, window: &WindowSummary) -> Vec<KeyValue> {
+        // Seconds the window covers (shorter just after start), never zero.
+        let span = now
+            .duration_since(self.started)
+            .min(WINDOW)
+            .as_secs_f64()
+            .max(1e-3);
+        let [received, processed, dropped, rate_limited, bad, not_found] = window.count;
+        let (processing, latency) = (&window.processing_ms, &window.latency_ms);
         let kv = |key: &str, value: String| KeyValue {
             key: key.into(),
             value,
         };
         let total = |e: Event| self.total(e).to_string();
-        DiagnosticArray {
-            header: Header {
-                stamp,
-                frame_id: String::new(),
-            },
-            status: vec![DiagnosticStatus {
-                level,
-                name: format!("{node_name}: marker detection"),
-                message,
-                hardware_id: String::new(),
-                values: vec![
-                    kv("window_s", format!("{span:.1}")),
-                    kv("rate_hz", format!("{:.2}", processed as f64 / span)),
-                    kv("input_rate_hz", format!("{:.2}", received as f64 / span)),
-                    kv("processing_ms_p50", format_ms(percentile(&processing, 0.5))),
-                    kv(
-                        "processing_ms_p99",
-                        format_ms(percentile(&processing, 0.99)),
-                    ),
-                    kv("latency_ms_p50", format_ms(percentile(&latency, 0.5))),
-                    kv("latency_ms_p99", format_ms(percentile(&latency, 0.99))),
-                    kv("window_frames_dropped", dropped.to_string()),
-                    kv("window_frames_rate_limited", rate_limited.to_string()),
-                    kv("window_frames_without_marker", not_found.to_string()),
-                    kv("window_bad_messages", bad.to_string()),
-                    kv("frames_received", total(Event::Received)),
-                    kv("frames_processed", total(PROCESSED)),
-                    kv("frames_dropped", total(Event::Dropped)),
-                    kv("frames_rate_limited", total(Event::RateLimited)),
-                    kv("frames_without_marker", total(Event::NotFound)),
-                    kv("bad_messages", total(Event::Bad)),
-                ],
-            }],
-        }
+        vec![
+            kv("window_s", format!("{span:.1}")),
+            kv("rate_hz", format!("{:.2}", processed as f64 / span)),
+            kv("input_rate_hz", format!("{:.2}", received as f64 / span)),
+            kv("processing_ms_p50", format_ms(percentile(processing, 0.5))),
+            kv("processing_ms_p99", format_ms(percentile(processing, 0.99))),
+            kv("latency_ms_p50", format_ms(percentile(latency, 0.5))),
+            kv("latency_ms_p99", format_ms(percentile(latency, 0.99))),
+            kv("window_frames_dropped", dropped.to_string()),
+            kv("window_frames_rate_limited", rate_limited.to_string()),
+            kv("window_frames_without_marker", not_found.to_string()),
+            kv("window_bad_messages", bad.to_string()),
+            kv("frames_received", total(Event::Received)),
+            kv("frames_processed", total(PROCESSED)),
+            kv("frames_dropped", total(Event::Dropped)),
+            kv("frames_rate_limited", total(Event::RateLimited)),
+            kv("frames_without_marker", total(Event::NotFound)),
+            kv("bad_messages", total(Event::Bad)),
+        ]
     }
+}
+
+/// The events of the window: counts in [`Event`] order, and the processed frames' timings,
+/// sorted.
+struct WindowSummary {
+    count: [u64; 6],
+    /// Processing times, ms, ascending.
+    processing_ms: Vec<f64>,
+    /// Latencies from arrival to published, ms, ascending.
+    latency_ms: Vec<f64>,
 }
 
 /// Any processed event (for [`Stats::total`]).

@@ -28,7 +28,9 @@ use crate::messages::{
     PoseWithCovarianceStamped, RosType, TfMessage, Time,
 };
 use crate::param_services::{mapping_for_rmw, ParameterAccess, ParameterServices};
-use crate::params::{ImageQos, NodeParams, QosDurability, QosHistory, QosReliability};
+use crate::params::{
+    ImageQos, NodeParams, QosDurability, QosHistory, QosReliability, StartupParams,
+};
 use crate::processing::{annotate, FrameOutput, Processor, DEFAULT_CAMERA_FRAME};
 use crate::ros_args::{fully_qualified, RosArgs};
 use log::{error, info, warn};
@@ -141,84 +143,22 @@ fn output_qos(depth: usize) -> QosProfile {
 
 /// Runs the node with the process arguments (without the program name) until killed.
 pub fn run(argv: Vec<String>) -> Result<(), String> {
-    let args = RosArgs::parse(argv).map_err(|e| e.to_string())?;
-    if args.other.iter().any(|a| a == "--help" || a == "-h") {
-        println!("{USAGE}");
-        return Ok(());
-    }
-    if !args.other.is_empty() {
-        return Err(format!(
-            "unexpected arguments {:?} (node arguments go after --ros-args; see --help)",
-            args.other
-        ));
-    }
-    init_logging(args.log_level.as_deref());
-
-    let node_name = args
-        .node_name
-        .clone()
-        .unwrap_or_else(|| DEFAULT_NODE_NAME.into());
-    let namespace = args.namespace.clone().unwrap_or_else(|| "/".into());
-    let overrides = args
-        .parameter_overrides(&namespace, &node_name)
-        .map_err(|e| e.to_string())?;
-    let startup = NodeParams::from_overrides(&overrides).map_err(|e| {
-        if args.params_files.is_empty() {
-            format!(
-                "{e} (start it with `--ros-args --params-file params/detector.yaml`, or set \
-                 parameters with `--ros-args -p name:=value`; see --help)"
-            )
-        } else {
-            e
-        }
-    })?;
+    let Some(names) = parse_command_line(argv)? else {
+        return Ok(()); // --help
+    };
+    let startup = startup_params(&names)?;
     let started = Instant::now();
     let params = startup.params;
     let processor = Processor::new(params.clone(), 0)?;
-    let shared = Arc::new(Shared {
-        params: Mutex::new((params.clone(), 0)),
-        stats: Mutex::new(Stats::new(started)),
-        slot: Mutex::new(None),
-        slot_filled: Condvar::new(),
-        debug_wanted: AtomicBool::new(false),
-        sim_time: Mutex::new(Time::default()),
-    });
+    let shared = Arc::new(Shared::new(params.clone(), started));
 
-    let domain_id = match std::env::var("ROS_DOMAIN_ID") {
-        Ok(text) if !text.trim().is_empty() => text
-            .trim()
-            .parse::<u16>()
-            .map_err(|_| format!("ROS_DOMAIN_ID `{text}` is not a domain number"))?,
-        _ => 0,
-    };
+    let domain_id = domain_id_from_env()?;
     let discovery = Discovery::from_env(|name| std::env::var(name).ok())?;
     let context = Context::from_domain_participant(discovery.participant(domain_id)?)
         .map_err(|e| format!("cannot start DDS: {e:?}"))?;
-    let mut options = NodeOptions::new()
-        .enable_rosout(true)
-        // Served by crate::param_services instead, which also speaks Cyclone's mapping.
-        .start_parameter_services(false);
-    for (name, value) in params.values() {
-        options = options.declare_parameter(name, value.clone().into());
-    }
-    let for_validator = Arc::clone(&shared);
-    let for_action = Arc::clone(&shared);
-    options = options
-        .parameter_validator(Box::new(move |name, value| {
-            let value = value.clone().into();
-            lock(&for_validator.params).0.with(name, &value).map(|_| ())
-        }))
-        .parameter_set_action(Box::new(move |name, value| {
-            apply_parameter(&for_action, name, value)
-        }));
-    let mut node = context
-        .new_node(
-            NodeName::new(&namespace, &node_name).map_err(|e| e.to_string())?,
-            options,
-        )
-        .map_err(|e| format!("cannot create node: {e:?}"))?;
-    let fq_name = fully_qualified(&namespace, &node_name);
-    RosoutLogger::attach(node.logging_handle(), &node_name);
+    let mut node = create_node(&context, &shared, &params, &names)?;
+    let fq_name = fully_qualified(&names.namespace, &names.node_name);
+    RosoutLogger::attach(node.logging_handle(), &names.node_name);
     info!("node {fq_name} on DDS domain {domain_id}");
     // Logged once /rosout is attached, so that ROS tools see them too.
     discovery.log();
@@ -230,71 +170,12 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
         node.set_parameter("use_sim_time", ParameterValue::Boolean(true))?;
         info!("use_sim_time: the node's own stamps follow /clock");
     }
-    // rosgraph_msgs/Clock, read here: ros2-client's own /clock reader expects another type.
-    // Kept for the node's life, since `ros2 param set use_sim_time true` may come later.
-    let clock: Subscription<Clock> = {
-        let qos = QosProfile::subscription_default()
-            .reliability(Reliability::BestEffort)
-            .history(History::KeepLast { depth: 1 });
-        let clock_topic = args.resolve_topic("/clock", &namespace, &node_name);
-        let t = create_topic::<Clock>(&node, &clock_topic, &qos)?;
-        node.create_subscription(&t, Some(qos))
-            .map_err(|e| format!("cannot subscribe to /clock: {e:?}"))?
-    };
-
-    let topic = |name: &str| args.resolve_topic(name, &namespace, &node_name);
-    // image_transport's compressed plugin publishes on `<base topic>/compressed`.
-    let image_topic = if params.compressed_input {
-        format!("{}/compressed", topic("image"))
-    } else {
-        topic("image")
-    };
-    let qos = image_qos(params.image_qos(&image_topic));
-    for unused in params.unused_qos_overrides(&image_topic) {
-        warn!("parameter override ignored: {unused}: the image topic is {image_topic}");
-    }
-    let receiver = if params.compressed_input {
-        let t = create_topic::<CompressedImage>(&node, &image_topic, &qos)?;
-        Receiver::Compressed(
-            node.create_subscription(&t, Some(qos))
-                .map_err(|e| format!("cannot subscribe to {image_topic}: {e:?}"))?,
-        )
-    } else {
-        let t = create_topic::<Image>(&node, &image_topic, &qos)?;
-        Receiver::Raw(
-            node.create_subscription(&t, Some(qos))
-                .map_err(|e| format!("cannot subscribe to {image_topic}: {e:?}"))?,
-        )
-    };
-    let names = TopicNames {
-        args: args.clone(),
-        namespace: namespace.clone(),
-        node_name: node_name.clone(),
-    };
-    let mut publishers = Publishers {
-        markers: publisher(&mut node, &topic("~/markers"), output_qos(10))?,
-        detections: publisher(&mut node, &topic("~/detections"), output_qos(10))?,
-        tf: publisher(&mut node, &topic("/tf"), output_qos(100))?,
-        debug: bounded_publisher(
-            &mut node,
-            &context,
-            &topic("~/debug_image"),
-            output_qos(1),
-            DEBUG_IMAGE_WINDOW,
-        )?,
-        poses: BTreeMap::new(),
-        relative: BTreeMap::new(),
-    };
-    // Configured IDs and pairs get their publishers now, so that subscribers are matched
-    // before the first frame (samples sent before matching are lost).
-    for id in &params.marker_ids {
-        publishers.pose(*id, &mut node, &names)?;
-    }
-    for pair in &params.relative_pairs {
-        publishers.relative_pose(*pair, &mut node, &names)?;
-    }
+    let clock = subscribe_clock(&mut node, &names)?;
+    let image_topic = image_topic_name(&params, &names);
+    let receiver = subscribe_image(&mut node, &params, &image_topic)?;
+    let publishers = create_publishers(&mut node, &context, &params, &names)?;
     let diagnostics: Publisher<DiagnosticArray> =
-        publisher(&mut node, &topic("/diagnostics"), output_qos(10))?;
+        publisher(&mut node, &names.resolve("/diagnostics"), output_qos(10))?;
     info!(
         "waiting for frames ({}) on {image_topic}; publishing on {} and {}",
         if params.compressed_input {
@@ -302,81 +183,300 @@ pub fn run(argv: Vec<String>) -> Result<(), String> {
         } else {
             "sensor_msgs/Image"
         },
-        topic("~/detections"),
-        topic("~/markers")
+        names.resolve("~/detections"),
+        names.resolve("~/markers")
     );
 
     let rmw = std::env::var("RMW_IMPLEMENTATION").ok();
     let parameter_services =
         ParameterServices::create(&mut node, &fq_name, mapping_for_rmw(rmw.as_deref()))?;
-    let spinner = node
-        .spinner()
-        .map_err(|e| format!("cannot start the ROS 2 spinner: {e:?}"))?;
-    std::thread::Builder::new()
-        .name("spinner".into())
-        .spawn(move || {
-            if let Err(e) = futures::executor::block_on(spinner.spin()) {
-                error!("spinner stopped: {e:?}");
-            }
-        })
-        .map_err(|e| e.to_string())?;
-
+    spawn_spinner(&mut node)?;
     let node = Arc::new(Mutex::new(node));
-    {
-        let access = NodeParameters {
-            node: Arc::clone(&node),
-            shared: Arc::clone(&shared),
-        };
-        std::thread::Builder::new()
-            .name("parameters".into())
-            .spawn(move || parameter_services.serve(&access))
-            .map_err(|e| e.to_string())?;
-    }
-    {
-        let shared = Arc::clone(&shared);
-        std::thread::Builder::new()
-            .name("clock".into())
-            .spawn(move || loop {
-                match futures::executor::block_on(clock.async_take()) {
-                    Ok((tick, _)) => *lock(&shared.sim_time) = tick.clock,
-                    Err(ros2_client::ReadError::Closed) => return,
-                    Err(e) => warn!("bad /clock message: {e}"),
-                }
-            })
-            .map_err(|e| e.to_string())?;
-    }
-    {
-        let shared = Arc::clone(&shared);
-        std::thread::Builder::new()
-            .name("receiver".into())
-            .spawn(move || match receiver {
-                Receiver::Raw(s) => receive_loop(s, &shared, check_raw),
-                Receiver::Compressed(s) => receive_loop(s, &shared, check_compressed),
-            })
-            .map_err(|e| e.to_string())?;
-    }
+    let access = NodeParameters {
+        node: Arc::clone(&node),
+        shared: Arc::clone(&shared),
+    };
+    spawn("parameters", move || parameter_services.serve(&access))?;
+    spawn_clock_reader(clock, Arc::clone(&shared))?;
+    spawn_receiver(receiver, Arc::clone(&shared))?;
+    let debug_topic = names.resolve("~/debug_image");
     {
         let shared = Arc::clone(&shared);
         let node = Arc::clone(&node);
-        std::thread::Builder::new()
-            .name("worker".into())
-            .spawn(move || work_loop(processor, publishers, &shared, &node, &names))
-            .map_err(|e| e.to_string())?;
+        spawn("worker", move || {
+            work_loop(processor, publishers, &shared, &node, &names)
+        })?;
     }
-
     // Main thread: diagnostics and debug-image demand.
-    let debug_topic = topic("~/debug_image");
+    let topics = DiagnosticsTopics {
+        node_name: fq_name,
+        image: image_topic,
+        debug_image: debug_topic,
+    };
+    diagnostics_loop(&node, &shared, &diagnostics, &topics)
+}
+
+impl Shared {
+    /// The state at start: `params` as generation 0, empty statistics of a node started at
+    /// `started`, no frame, no debug-image subscriber, sim time zero.
+    fn new(params: NodeParams, started: Instant) -> Shared {
+        Shared {
+            params: Mutex::new((params, 0)),
+            stats: Mutex::new(Stats::new(started)),
+            slot: Mutex::new(None),
+            slot_filled: Condvar::new(),
+            debug_wanted: AtomicBool::new(false),
+            sim_time: Mutex::new(Time::default()),
+        }
+    }
+}
+
+/// Parses the command line and starts logging at its level; `None` after printing `--help`.
+/// The node's name and namespace (defaults: [`DEFAULT_NODE_NAME`], `/`) and the remappings
+/// come back as the [`TopicNames`] every topic is resolved with.
+fn parse_command_line(argv: Vec<String>) -> Result<Option<TopicNames>, String> {
+    let args = RosArgs::parse(argv).map_err(|e| e.to_string())?;
+    if args.other.iter().any(|a| a == "--help" || a == "-h") {
+        println!("{USAGE}");
+        return Ok(None);
+    }
+    if !args.other.is_empty() {
+        return Err(format!(
+            "unexpected arguments {:?} (node arguments go after --ros-args; see --help)",
+            args.other
+        ));
+    }
+    init_logging(args.log_level.as_deref());
+    let node_name = args
+        .node_name
+        .clone()
+        .unwrap_or_else(|| DEFAULT_NODE_NAME.into());
+    let namespace = args.namespace.clone().unwrap_or_else(|| "/".into());
+    Ok(Some(TopicNames {
+        args,
+        namespace,
+        node_name,
+    }))
+}
+
+/// The validated startup parameters from the parameter files and `-p` assignments; the
+/// error says how to pass parameters when no file was given.
+fn startup_params(names: &TopicNames) -> Result<StartupParams, String> {
+    let args = &names.args;
+    let overrides = args
+        .parameter_overrides(&names.namespace, &names.node_name)
+        .map_err(|e| e.to_string())?;
+    NodeParams::from_overrides(&overrides).map_err(|e| {
+        if args.params_files.is_empty() {
+            format!(
+                "{e} (start it with `--ros-args --params-file params/detector.yaml`, or set \
+                 parameters with `--ros-args -p name:=value`; see --help)"
+            )
+        } else {
+            e
+        }
+    })
+}
+
+/// The DDS domain from `ROS_DOMAIN_ID` (0 when unset or blank).
+fn domain_id_from_env() -> Result<u16, String> {
+    match std::env::var("ROS_DOMAIN_ID") {
+        Ok(text) if !text.trim().is_empty() => text
+            .trim()
+            .parse::<u16>()
+            .map_err(|_| format!("ROS_DOMAIN_ID `{text}` is not a domain number")),
+        _ => Ok(0),
+    }
+}
+
+/// Creates the ROS 2 node with `/rosout`, its parameters declared with their startup values,
+/// and changes validated and applied through `shared` ([`apply_parameter`]).
+fn create_node(
+    context: &Context,
+    shared: &Arc<Shared>,
+    params: &NodeParams,
+    names: &TopicNames,
+) -> Result<Node, String> {
+    let mut options = NodeOptions::new()
+        .enable_rosout(true)
+        // Served by crate::param_services instead, which also speaks Cyclone's mapping.
+        .start_parameter_services(false);
+    for (name, value) in params.values() {
+        options = options.declare_parameter(name, value.clone().into());
+    }
+    let for_validator = Arc::clone(shared);
+    let for_action = Arc::clone(shared);
+    options = options
+        .parameter_validator(Box::new(move |name, value| {
+            let value = value.clone().into();
+            lock(&for_validator.params).0.with(name, &value).map(|_| ())
+        }))
+        .parameter_set_action(Box::new(move |name, value| {
+            apply_parameter(&for_action, name, value)
+        }));
+    context
+        .new_node(
+            NodeName::new(&names.namespace, &names.node_name).map_err(|e| e.to_string())?,
+            options,
+        )
+        .map_err(|e| format!("cannot create node: {e:?}"))
+}
+
+/// The `/clock` subscription (rosgraph_msgs/Clock, read here: ros2-client's own /clock
+/// reader expects another type). Kept for the node's life, since
+/// `ros2 param set use_sim_time true` may come later.
+fn subscribe_clock(node: &mut Node, names: &TopicNames) -> Result<Subscription<Clock>, String> {
+    let qos = QosProfile::subscription_default()
+        .reliability(Reliability::BestEffort)
+        .history(History::KeepLast { depth: 1 });
+    let clock_topic = names.resolve("/clock");
+    let t = create_topic::<Clock>(node, &clock_topic, &qos)?;
+    node.create_subscription(&t, Some(qos))
+        .map_err(|e| format!("cannot subscribe to /clock: {e:?}"))
+}
+
+/// The resolved image topic: `image`, or `image/compressed` with
+/// `image_transport:=compressed` (where image_transport's compressed plugin publishes).
+fn image_topic_name(params: &NodeParams, names: &TopicNames) -> String {
+    if params.compressed_input {
+        format!("{}/compressed", names.resolve("image"))
+    } else {
+        names.resolve("image")
+    }
+}
+
+/// Subscribes to `image_topic` with the transport and QoS the parameters name, warning about
+/// QoS overrides that name another topic.
+fn subscribe_image(
+    node: &mut Node,
+    params: &NodeParams,
+    image_topic: &str,
+) -> Result<Receiver, String> {
+    let qos = image_qos(params.image_qos(image_topic));
+    for unused in params.unused_qos_overrides(image_topic) {
+        warn!("parameter override ignored: {unused}: the image topic is {image_topic}");
+    }
+    Ok(if params.compressed_input {
+        let t = create_topic::<CompressedImage>(node, image_topic, &qos)?;
+        Receiver::Compressed(
+            node.create_subscription(&t, Some(qos))
+                .map_err(|e| format!("cannot subscribe to {image_topic}: {e:?}"))?,
+        )
+    } else {
+        let t = create_topic::<Image>(node, image_topic, &qos)?;
+        Receiver::Raw(
+            node.create_subscription(&t, Some(qos))
+                .map_err(|e| format!("cannot subscribe to {image_topic}: {e:?}"))?,
+        )
+    })
+}
+
+/// The output publishers, with those of the configured marker IDs and pairs created now, so
+/// that subscribers are matched before the first frame (samples sent before matching are
+/// lost).
+fn create_publishers(
+    node: &mut Node,
+    context: &Context,
+    params: &NodeParams,
+    names: &TopicNames,
+) -> Result<Publishers, String> {
+    let mut publishers = Publishers {
+        markers: publisher(node, &names.resolve("~/markers"), output_qos(10))?,
+        detections: publisher(node, &names.resolve("~/detections"), output_qos(10))?,
+        tf: publisher(node, &names.resolve("/tf"), output_qos(100))?,
+        debug: bounded_publisher(
+            node,
+            context,
+            &names.resolve("~/debug_image"),
+            output_qos(1),
+            DEBUG_IMAGE_WINDOW,
+        )?,
+        poses: BTreeMap::new(),
+        relative: BTreeMap::new(),
+    };
+    for id in &params.marker_ids {
+        publishers.pose(*id, node, names)?;
+    }
+    for pair in &params.relative_pairs {
+        publishers.relative_pose(*pair, node, names)?;
+    }
+    Ok(publishers)
+}
+
+/// Starts a thread named `name` running `body`.
+fn spawn<T: Send + 'static>(
+    name: &str,
+    body: impl FnOnce() -> T + Send + 'static,
+) -> Result<(), String> {
+    std::thread::Builder::new()
+        .name(name.into())
+        .spawn(body)
+        .map(|_| ())
+        .map_err(|e| e.to_string())
+}
+
+/// Starts the thread spinning ros2-client's graph bookkeeping (discovery, `/clock`).
+fn spawn_spinner(node: &mut Node) -> Result<(), String> {
+    let spinner = node
+        .spinner()
+        .map_err(|e| format!("cannot start the ROS 2 spinner: {e:?}"))?;
+    spawn("spinner", move || {
+        if let Err(e) = futures::executor::block_on(spinner.spin()) {
+            error!("spinner stopped: {e:?}");
+        }
+    })
+}
+
+/// Starts the thread keeping the latest `/clock` time in `shared`.
+fn spawn_clock_reader(clock: Subscription<Clock>, shared: Arc<Shared>) -> Result<(), String> {
+    spawn("clock", move || loop {
+        match futures::executor::block_on(clock.async_take()) {
+            Ok((tick, _)) => *lock(&shared.sim_time) = tick.clock,
+            Err(ros2_client::ReadError::Closed) => return,
+            Err(e) => warn!("bad /clock message: {e}"),
+        }
+    })
+}
+
+/// Starts the receiver thread ([`receive_loop`]) of the chosen transport.
+fn spawn_receiver(receiver: Receiver, shared: Arc<Shared>) -> Result<(), String> {
+    spawn("receiver", move || match receiver {
+        Receiver::Raw(s) => receive_loop(s, &shared, check_raw),
+        Receiver::Compressed(s) => receive_loop(s, &shared, check_compressed),
+    })
+}
+
+/// The names `/diagnostics` reports with, and the topic whose subscribers it watches.
+struct DiagnosticsTopics {
+    /// The node's fully qualified name.
+    node_name: String,
+    /// The resolved image topic.
+    image: String,
+    /// The resolved `~/debug_image` topic.
+    debug_image: String,
+}
+
+/// The main thread's loop, once per [`DIAGNOSTICS_PERIOD`]: notes whether anyone subscribes
+/// to `~/debug_image` and publishes `/diagnostics`, stamped with the node's clock (`/clock`
+/// under `use_sim_time`).
+fn diagnostics_loop(
+    node: &Mutex<Node>,
+    shared: &Shared,
+    diagnostics: &Publisher<DiagnosticArray>,
+    topics: &DiagnosticsTopics,
+) -> ! {
     let mut memory = crate::memory::MemoryRelease::default();
     loop {
         std::thread::sleep(DIAGNOSTICS_PERIOD);
-        let wanted = lock(&node).subscription_count(&debug_topic) > 0;
+        let wanted = lock(node).subscription_count(&topics.debug_image) > 0;
         shared.debug_wanted.store(wanted, Ordering::Relaxed);
         let stamp = if lock(&shared.params).0.use_sim_time {
             *lock(&shared.sim_time)
         } else {
             Time::now()
         };
-        let report = lock(&shared.stats).report(Instant::now(), stamp, &fq_name, &image_topic);
+        let report =
+            lock(&shared.stats).report(Instant::now(), stamp, &topics.node_name, &topics.image);
         if let Err(e) = diagnostics.publish(report) {
             warn!("cannot publish diagnostics: {}", write_failure(&e));
         }
@@ -702,67 +802,122 @@ impl TopicNames {
 /// Takes the newest frame, processes it, publishes; rebuilds the detector on parameter
 /// changes and applies `max_rate`.
 fn work_loop(
-    mut processor: Processor,
-    mut publishers: Publishers,
+    processor: Processor,
+    publishers: Publishers,
     shared: &Shared,
     node: &Mutex<Node>,
     names: &TopicNames,
 ) {
-    let mut not_found_warning = Throttle::new(WARN_PERIOD);
-    let mut publish_warning = Throttle::new(WARN_PERIOD);
-    let mut frame_warning = Throttle::new(WARN_PERIOD);
-    let mut last_start: Option<Instant> = None;
-    let mut last_debug: Option<Instant> = None;
+    let mut worker = Worker {
+        processor,
+        publishers,
+        not_found_warning: Throttle::new(WARN_PERIOD),
+        publish_warning: Throttle::new(WARN_PERIOD),
+        frame_warning: Throttle::new(WARN_PERIOD),
+        last_start: None,
+        last_debug: None,
+    };
     loop {
-        let frame = {
-            let mut slot = lock(&shared.slot);
-            loop {
-                if let Some(frame) = slot.take() {
-                    break frame;
-                }
-                slot = shared
-                    .slot_filled
-                    .wait(slot)
-                    .unwrap_or_else(|poisoned| poisoned.into_inner());
-            }
-        };
+        let frame = take_frame(shared);
+        worker.handle(&frame, shared, node, names);
+    }
+}
+
+/// Waits for a frame in the slot and takes it.
+fn take_frame(shared: &Shared) -> Frame {
+    let mut slot = lock(&shared.slot);
+    loop {
+        if let Some(frame) = slot.take() {
+            return frame;
+        }
+        slot = shared
+            .slot_filled
+            .wait(slot)
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
+    }
+}
+
+/// The worker thread's state between frames.
+struct Worker {
+    processor: Processor,
+    publishers: Publishers,
+    /// Bad images and frames without a marker.
+    not_found_warning: Throttle,
+    publish_warning: Throttle,
+    /// Frames published in the default camera frame.
+    frame_warning: Throttle,
+    /// When the last frame not skipped by `max_rate` was taken.
+    last_start: Option<Instant>,
+    /// When the last `~/debug_image` was published.
+    last_debug: Option<Instant>,
+}
+
+impl Worker {
+    /// Processes one frame and publishes its outputs (unless `max_rate` skips it), recording
+    /// it in the statistics.
+    fn handle(&mut self, frame: &Frame, shared: &Shared, node: &Mutex<Node>, names: &TopicNames) {
         let start = Instant::now();
-        {
-            let guard = lock(&shared.params);
-            if guard.1 != processor.generation() {
-                if let Err(e) = processor.update(guard.0.clone(), guard.1) {
-                    // Validated before acceptance; only a vanished pattern file gets here.
-                    warn!("keeping the previous detector: {e}");
-                }
-            }
+        self.follow_parameters(shared);
+        if self.rate_limited(start) {
+            lock(&shared.stats).record(start, Event::RateLimited);
+            return;
         }
-        let max_rate = processor.params().max_rate;
-        if max_rate > 0.0 {
-            if let Some(last) = last_start {
-                if start.duration_since(last).as_secs_f64() < 1.0 / max_rate {
-                    lock(&shared.stats).record(start, Event::RateLimited);
-                    continue;
-                }
-            }
-        }
-        last_start = Some(start);
+        self.last_start = Some(start);
         let processed = match &frame.message {
-            Input::Raw(image) => processor.process(image),
-            Input::Compressed(image) => processor.process_compressed(image),
+            Input::Raw(image) => self.processor.process(image),
+            Input::Compressed(image) => self.processor.process_compressed(image),
         };
         let output = match processed {
             Ok(done) => done,
             Err(bad) => {
                 // A compressed image that does not decode, or one above max_image_pixels.
-                if let Some(held_back) = not_found_warning.allow(start) {
+                if let Some(held_back) = self.not_found_warning.allow(start) {
                     warn!("bad image ignored: {bad} ({held_back} more since the last warning)");
                 }
                 record_bad(shared, start, bad.0);
-                continue;
+                return;
             }
         };
+        self.warn_about(&output, start);
+        let params = self.processor.params();
+        let mut failures = publish(&output, &mut self.publishers, node, names, params);
+        if let Some(failure) = self.publish_debug_image(shared, &output, start) {
+            failures.push(failure);
+        }
+        record_processed(shared, start, frame.arrived, output.detect_error.is_some());
+        if let Some(first) = failures.first() {
+            if let Some(held_back) = self.publish_warning.allow(start) {
+                warn!("publishing failed: {first} ({held_back} more since the last warning)");
+            }
+        }
+    }
+
+    /// Rebuilds the detector when the parameters changed since it was built.
+    fn follow_parameters(&mut self, shared: &Shared) {
+        let guard = lock(&shared.params);
+        if guard.1 != self.processor.generation() {
+            if let Err(e) = self.processor.update(guard.0.clone(), guard.1) {
+                // Validated before acceptance; only a vanished pattern file gets here.
+                warn!("keeping the previous detector: {e}");
+            }
+        }
+    }
+
+    /// Whether a frame taken at `start` comes sooner than `max_rate` (Hz; 0: no limit)
+    /// allows after the last one processed.
+    fn rate_limited(&self, start: Instant) -> bool {
+        let max_rate = self.processor.params().max_rate;
+        max_rate > 0.0
+            && self
+                .last_start
+                .is_some_and(|last| start.duration_since(last).as_secs_f64() < 1.0 / max_rate)
+    }
+
+    /// The throttled warnings about a processed frame: published in the default camera
+    /// frame, no marker found.
+    fn warn_about(&mut self, output: &FrameOutput, start: Instant) {
         if output.frame_defaulted {
-            if let Some(held_back) = frame_warning.allow(start) {
+            if let Some(held_back) = self.frame_warning.allow(start) {
                 warn!(
                     "the image has an empty header.frame_id and camera_frame is not set: \
                      publishing in frame `{DEFAULT_CAMERA_FRAME}` ({held_back} more since the \
@@ -771,43 +926,52 @@ fn work_loop(
             }
         }
         if let Some(reason) = &output.detect_error {
-            if let Some(held_back) = not_found_warning.allow(start) {
+            if let Some(held_back) = self.not_found_warning.allow(start) {
                 warn!("no marker found: {reason} ({held_back} more since the last warning)");
             }
         }
-        let mut failures = publish(&output, &mut publishers, node, names, processor.params());
-        // The annotated image costs a copy of the frame: only while someone subscribes.
-        if shared.debug_wanted.load(Ordering::Relaxed)
-            && last_debug.is_none_or(|t| start.duration_since(t) >= DEBUG_IMAGE_PERIOD)
+    }
+
+    /// Publishes the annotated frame on `~/debug_image` while someone subscribes, at most
+    /// once per [`DEBUG_IMAGE_PERIOD`] (it costs a copy of the frame); returns the failure.
+    fn publish_debug_image(
+        &mut self,
+        shared: &Shared,
+        output: &FrameOutput,
+        start: Instant,
+    ) -> Option<String> {
+        if !shared.debug_wanted.load(Ordering::Relaxed)
+            || self
+                .last_debug
+                .is_some_and(|t| start.duration_since(t) < DEBUG_IMAGE_PERIOD)
         {
-            if let Some(grey) = processor.last_frame() {
-                last_debug = Some(start);
-                let debug = annotate(grey, &output.raw, &output.markers.header);
-                if let Err(e) = publishers.debug.publish(debug) {
-                    failures.push(format!("debug image: {}", write_failure(&e)));
-                }
-            }
+            return None;
         }
-        {
-            let now = Instant::now();
-            let mut stats = lock(&shared.stats);
-            let ms = |d: Duration| d.as_secs_f64() * 1e3;
-            stats.record(
-                now,
-                Event::Processed {
-                    processing_ms: ms(now.duration_since(start)),
-                    latency_ms: ms(now.duration_since(frame.arrived)),
-                },
-            );
-            if output.detect_error.is_some() {
-                stats.record(now, Event::NotFound);
-            }
-        }
-        if let Some(first) = failures.first() {
-            if let Some(held_back) = publish_warning.allow(start) {
-                warn!("publishing failed: {first} ({held_back} more since the last warning)");
-            }
-        }
+        let grey = self.processor.last_frame()?;
+        self.last_debug = Some(start);
+        let debug = annotate(grey, &output.raw, &output.markers.header);
+        let published = self.publishers.debug.publish(debug);
+        published
+            .err()
+            .map(|e| format!("debug image: {}", write_failure(&e)))
+    }
+}
+
+/// Records a processed frame taken at `start` that arrived at `arrived` (processing time
+/// and latency, ms), and whether it held no marker.
+fn record_processed(shared: &Shared, start: Instant, arrived: Instant, not_found: bool) {
+    let now = Instant::now();
+    let mut stats = lock(&shared.stats);
+    let ms = |d: Duration| d.as_secs_f64() * 1e3;
+    stats.record(
+        now,
+        Event::Processed {
+            processing_ms: ms(now.duration_since(start)),
+            latency_ms: ms(now.duration_since(arrived)),
+        },
+    );
+    if not_found {
+        stats.record(now, Event::NotFound);
     }
 }
 

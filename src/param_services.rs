@@ -307,24 +307,27 @@ impl ParameterServices {
             "parameter services up, {} request mapping",
             mapping_name(self.mapping)
         );
-        enum Request {
-            Get(ros2_client::RmwRequestId, GetParametersRequest),
-            GetTypes(ros2_client::RmwRequestId, GetParameterTypesRequest),
-            Set(ros2_client::RmwRequestId, SetParametersRequest),
-            SetAtomically(ros2_client::RmwRequestId, SetParametersRequest),
-            List(ros2_client::RmwRequestId, ListParametersRequest),
-            Describe(ros2_client::RmwRequestId, DescribeParametersRequest),
-        }
-        type Item = Result<Request, String>;
-        fn tag<R, E: std::fmt::Debug>(
-            result: Result<(ros2_client::RmwRequestId, R), E>,
-            wrap: fn(ros2_client::RmwRequestId, R) -> Request,
-        ) -> Item {
-            result
-                .map(|(id, r)| wrap(id, r))
-                .map_err(|e| format!("{e:?}"))
-        }
-        let streams: Vec<std::pin::Pin<Box<dyn futures::Stream<Item = Item> + '_>>> = vec![
+        let mut requests = select_all(self.request_streams());
+        futures::executor::block_on(async {
+            while let Some(request) = requests.next().await {
+                match request {
+                    Ok(request) => self.answer(request, access),
+                    // Most likely a client on another middleware's mapping.
+                    Err(e) => warn!(
+                        "undecodable parameter service request ({e}); this node serves the \
+                         {} mapping: is the caller's RMW_IMPLEMENTATION the node's?",
+                        mapping_name(self.mapping)
+                    ),
+                }
+            }
+        });
+        warn!("parameter services stopped");
+    }
+
+    /// The requests of the six servers, each tagged with its service.
+    fn request_streams(&self) -> Vec<RequestStream<'_>> {
+        use futures::stream::StreamExt;
+        vec![
             Box::pin(
                 self.get
                     .receive_request_stream()
@@ -355,64 +358,80 @@ impl ParameterServices {
                     .receive_request_stream()
                     .map(|r| tag(r, Request::Describe)),
             ),
-        ];
-        let mut requests = select_all(streams);
-        futures::executor::block_on(async {
-            while let Some(request) = requests.next().await {
-                let sent = match request {
-                    Err(e) => {
-                        // Most likely a client on another middleware's mapping.
-                        warn!(
-                            "undecodable parameter service request ({e}); this node serves the \
-                             {} mapping: is the caller's RMW_IMPLEMENTATION the node's?",
-                            mapping_name(self.mapping)
-                        );
-                        continue;
-                    }
-                    Ok(Request::Get(id, r)) => self.get.send_response(
-                        id,
-                        GetParametersResponse {
-                            values: get_parameters(access, &r),
-                        },
-                    ),
-                    Ok(Request::GetTypes(id, r)) => self.get_types.send_response(
-                        id,
-                        GetParameterTypesResponse {
-                            values: get_parameter_types(access, &r),
-                        },
-                    ),
-                    Ok(Request::Set(id, r)) => self.set.send_response(
-                        id,
-                        SetParametersResponse {
-                            results: set_parameters(access, &r),
-                        },
-                    ),
-                    Ok(Request::SetAtomically(id, r)) => self.set_atomically.send_response(
-                        id,
-                        SetParametersAtomicallyResponse {
-                            result: set_parameters_atomically(access, &r),
-                        },
-                    ),
-                    Ok(Request::List(id, r)) => self.list.send_response(
-                        id,
-                        ListParametersResponse {
-                            result: list_parameters(access, &r),
-                        },
-                    ),
-                    Ok(Request::Describe(id, r)) => self.describe.send_response(
-                        id,
-                        DescribeParametersResponse {
-                            values: describe_parameters(access, &r),
-                        },
-                    ),
-                };
-                if let Err(e) = sent {
-                    warn!("cannot send a parameter service reply: {e:?}");
-                }
-            }
-        });
-        warn!("parameter services stopped");
+        ]
     }
+
+    /// Handles one request and sends its reply on the server it came from (a failed send is
+    /// logged: the caller times out).
+    fn answer(&self, request: Request, access: &dyn ParameterAccess) {
+        let sent = match request {
+            Request::Get(id, r) => self.get.send_response(
+                id,
+                GetParametersResponse {
+                    values: get_parameters(access, &r),
+                },
+            ),
+            Request::GetTypes(id, r) => self.get_types.send_response(
+                id,
+                GetParameterTypesResponse {
+                    values: get_parameter_types(access, &r),
+                },
+            ),
+            Request::Set(id, r) => self.set.send_response(
+                id,
+                SetParametersResponse {
+                    results: set_parameters(access, &r),
+                },
+            ),
+            Request::SetAtomically(id, r) => self.set_atomically.send_response(
+                id,
+                SetParametersAtomicallyResponse {
+                    result: set_parameters_atomically(access, &r),
+                },
+            ),
+            Request::List(id, r) => self.list.send_response(
+                id,
+                ListParametersResponse {
+                    result: list_parameters(access, &r),
+                },
+            ),
+            Request::Describe(id, r) => self.describe.send_response(
+                id,
+                DescribeParametersResponse {
+                    values: describe_parameters(access, &r),
+                },
+            ),
+        };
+        if let Err(e) = sent {
+            warn!("cannot send a parameter service reply: {e:?}");
+        }
+    }
+}
+
+/// A request to one of the six services, with the id its reply must carry.
+enum Request {
+    Get(ros2_client::RmwRequestId, GetParametersRequest),
+    GetTypes(ros2_client::RmwRequestId, GetParameterTypesRequest),
+    Set(ros2_client::RmwRequestId, SetParametersRequest),
+    SetAtomically(ros2_client::RmwRequestId, SetParametersRequest),
+    List(ros2_client::RmwRequestId, ListParametersRequest),
+    Describe(ros2_client::RmwRequestId, DescribeParametersRequest),
+}
+
+/// A received request, or why it did not decode.
+type RequestItem = Result<Request, String>;
+
+/// One server's incoming requests, tagged with their service.
+type RequestStream<'a> = std::pin::Pin<Box<dyn futures::Stream<Item = RequestItem> + 'a>>;
+
+/// Tags a received request with its service (`wrap`), or describes the receive error.
+fn tag<R, E: std::fmt::Debug>(
+    result: Result<(ros2_client::RmwRequestId, R), E>,
+    wrap: fn(ros2_client::RmwRequestId, R) -> Request,
+) -> RequestItem {
+    result
+        .map(|(id, r)| wrap(id, r))
+        .map_err(|e| format!("{e:?}"))
 }
 
 /// The node's parameters without DDS, with the node's validation: what the tests serve.

@@ -264,12 +264,7 @@ fn megarena_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
 /// image, with a gap of at least two periods between their bounding circles).
 fn hpcode_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
     let (id_a, id_b) = args.ids;
-    let layout = |id: u64| {
-        HpCodeLayout::from_code_size(args.period, args.code_size)
-            .and_then(|l| l.with_id(id))
-            .map_err(|e| format!("HP code (--code-size {}, id {id}): {e}", args.code_size))
-    };
-    let layouts = [layout(id_a)?, layout(id_b)?];
+    let layouts = [hpcode_layout(args, id_a)?, hpcode_layout(args, id_b)?];
     // Bounding circle of a marker at any angle, pixels, plus a margin for the blur.
     let radius_px = layouts[0].width() / args.pixel_size / std::f64::consts::SQRT_2 + 4.0;
     let gap_px = 2.0 * args.period / args.pixel_size;
@@ -286,55 +281,17 @@ fn hpcode_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
     let mut options = render_options(width);
     options.height = height;
     let center = Vector2::new((width / 2) as f64, (height / 2) as f64);
-    let (lo, hi) = (
-        Vector2::new(radius_px, radius_px),
-        Vector2::new(width as f64 - radius_px, height as f64 - radius_px),
-    );
-    let mut rng = SplitMix(args.seed);
+    let area = HpCodeArea {
+        lo: Vector2::new(radius_px, radius_px),
+        hi: Vector2::new(width as f64 - radius_px, height as f64 - radius_px),
+        min_distance_px: 2.0 * radius_px + gap_px,
+    };
+    let mut placer = HpCodePlacer::new(args.seed);
     let mut frames = Vec::new();
-    // With --motion: the last frame's origins and angles, and each marker's drift direction.
-    let mut last: Option<([Vector2<f64>; 2], [f64; 2])> = None;
-    // Drawn from their own generator, so that the poses without --motion stay as they were.
-    let mut drift = SplitMix(args.seed ^ 0x5eed_d41f);
-    let mut directions =
-        [drift.range(-PI, PI), drift.range(-PI, PI)].map(|a| Vector2::new(a.cos(), a.sin()));
     for i in 0..args.count {
-        let place = |rng: &mut SplitMix| Vector2::new(rng.range(lo.x, hi.x), rng.range(lo.y, hi.y));
-        if let (Some((origins, angles)), true) = (last, args.motion > 0.0) {
-            let mut moved = origins;
-            for k in 0..2 {
-                let next = origins[k] + directions[k] * args.motion;
-                for axis in 0..2 {
-                    if next[axis] < lo[axis] || next[axis] > hi[axis] {
-                        directions[k][axis] = -directions[k][axis];
-                    }
-                }
-                moved[k] = origins[k] + directions[k] * args.motion;
-            }
-            let turned = [angles[0] + 1e-3, angles[1] - 1e-3];
-            last = Some((moved, turned));
-        }
-        let (first, mut second, angles) = match last {
-            Some((o, a)) if args.motion > 0.0 => (o[0], o[1], Some(a)),
-            _ => (place(&mut rng), place(&mut rng), None),
-        };
-        let mut attempts = 0;
-        while angles.is_none() && (second - first).norm() < 2.0 * radius_px + gap_px {
-            attempts += 1;
-            if attempts > 10_000 {
-                return Err(format!(
-                    "cannot place two {}-cell HP codes apart in a {}-pixel frame",
-                    args.code_size, args.size
-                ));
-            }
-            second = place(&mut rng);
-        }
-        let alphas = angles.unwrap_or_else(|| [rng.range(-PI, PI), rng.range(-PI, PI)]);
-        last = Some(([first, second], alphas));
-        let poses = [0, 1].map(|k| {
-            let origin = [first, second][k];
-            Pose::from_origin_in_image(origin - center, alphas[k], args.pixel_size)
-        });
+        let (origins, alphas) = placer.next(args, &area)?;
+        let poses = [0, 1]
+            .map(|k| Pose::from_origin_in_image(origins[k] - center, alphas[k], args.pixel_size));
         let items: Vec<(&dyn Layout, Pose)> = layouts
             .iter()
             .zip(poses)
@@ -342,31 +299,139 @@ fn hpcode_frames(args: &Args) -> Result<Vec<serde_json::Value>, String> {
             .collect();
         let image = render_scene(&items, &options).map_err(|e| e.to_string())?;
         let file = write_frame(args, i, &image)?;
-        let markers: Vec<serde_json::Value> = [(id_a, &poses[0], first), (id_b, &poses[1], second)]
-            .iter()
-            .map(|(id, pose, origin)| {
-                let mut m = marker_truth(*id, pose);
-                m["origin_px"] = serde_json::json!([origin.x, origin.y]);
-                m
-            })
-            .collect();
-        // Exactly the node's convention (vernier-interface/src/processing.rs): aTb of the SI-scaled poses.
-        let a_from_b = poses[0]
-            .scaled(METRES_PER_UM)
-            .relative(&poses[1].scaled(METRES_PER_UM));
-        let t = a_from_b.translation.vector;
-        let (_, _, yaw) = a_from_b.rotation.euler_angles();
-        frames.push(serde_json::json!({
-            "file": file,
-            "markers": markers,
-            "relative": {
-                "a": id_a, "b": id_b,
-                "position_m": [t.x, t.y, t.z],
-                "yaw": yaw,
-            },
-        }));
+        frames.push(two_marker_truth(file, [id_a, id_b], &poses, origins));
     }
     Ok(frames)
+}
+
+/// The HP code layout of marker `id` (`--period`, `--code-size`).
+fn hpcode_layout(args: &Args, id: u64) -> Result<HpCodeLayout, String> {
+    HpCodeLayout::from_code_size(args.period, args.code_size)
+        .and_then(|l| l.with_id(id))
+        .map_err(|e| format!("HP code (--code-size {}, id {id}): {e}", args.code_size))
+}
+
+/// Where the two markers' origins may go: inside `lo..hi` (pixels), at least
+/// `min_distance_px` apart.
+struct HpCodeArea {
+    lo: Vector2<f64>,
+    hi: Vector2<f64>,
+    min_distance_px: f64,
+}
+
+impl HpCodeArea {
+    /// A random origin in the area, pixels.
+    fn place(&self, rng: &mut SplitMix) -> Vector2<f64> {
+        Vector2::new(
+            rng.range(self.lo.x, self.hi.x),
+            rng.range(self.lo.y, self.hi.y),
+        )
+    }
+}
+
+/// Origins (pixels) and angles (rad) of the two markers of a frame.
+type TwoMarkers = ([Vector2<f64>; 2], [f64; 2]);
+
+/// The two markers' origins and angles, frame after frame: at random, or with `--motion`
+/// drifting from the last frame's, bouncing off the area's edges.
+struct HpCodePlacer {
+    rng: SplitMix,
+    /// Each marker's drift direction (unit vectors), with `--motion`.
+    directions: [Vector2<f64>; 2],
+    /// The last frame's markers.
+    last: Option<TwoMarkers>,
+}
+
+impl HpCodePlacer {
+    fn new(seed: u64) -> HpCodePlacer {
+        // Drawn from their own generator, so that the poses without --motion stay as they were.
+        let mut drift = SplitMix(seed ^ 0x5eed_d41f);
+        let directions =
+            [drift.range(-PI, PI), drift.range(-PI, PI)].map(|a| Vector2::new(a.cos(), a.sin()));
+        HpCodePlacer {
+            rng: SplitMix(seed),
+            directions,
+            last: None,
+        }
+    }
+
+    /// The next frame's markers.
+    fn next(&mut self, args: &Args, area: &HpCodeArea) -> Result<TwoMarkers, String> {
+        if let (Some(last), true) = (self.last, args.motion > 0.0) {
+            self.last = Some(self.drifted(last, args.motion, area));
+        }
+        let (first, mut second, angles) = match self.last {
+            Some((o, a)) if args.motion > 0.0 => (o[0], o[1], Some(a)),
+            _ => (area.place(&mut self.rng), area.place(&mut self.rng), None),
+        };
+        let mut attempts = 0;
+        while angles.is_none() && (second - first).norm() < area.min_distance_px {
+            attempts += 1;
+            if attempts > 10_000 {
+                return Err(format!(
+                    "cannot place two {}-cell HP codes apart in a {}-pixel frame",
+                    args.code_size, args.size
+                ));
+            }
+            second = area.place(&mut self.rng);
+        }
+        let alphas = angles.unwrap_or_else(|| [self.rng.range(-PI, PI), self.rng.range(-PI, PI)]);
+        self.last = Some(([first, second], alphas));
+        Ok(([first, second], alphas))
+    }
+
+    /// `last` moved by `step` pixels along the drift directions (reversing a direction's
+    /// component where the step would leave the area) and turned by ±1 mrad.
+    fn drifted(
+        &mut self,
+        (origins, angles): TwoMarkers,
+        step: f64,
+        area: &HpCodeArea,
+    ) -> TwoMarkers {
+        let mut moved = origins;
+        for k in 0..2 {
+            let next = origins[k] + self.directions[k] * step;
+            for axis in 0..2 {
+                if next[axis] < area.lo[axis] || next[axis] > area.hi[axis] {
+                    self.directions[k][axis] = -self.directions[k][axis];
+                }
+            }
+            moved[k] = origins[k] + self.directions[k] * step;
+        }
+        (moved, [angles[0] + 1e-3, angles[1] - 1e-3])
+    }
+}
+
+/// The truth of a two-marker frame: each marker's pose and origin (pixels), and marker
+/// `ids[1]`'s pose in marker `ids[0]`'s frame.
+fn two_marker_truth(
+    file: String,
+    ids: [u64; 2],
+    poses: &[Pose; 2],
+    origins: [Vector2<f64>; 2],
+) -> serde_json::Value {
+    let markers: Vec<serde_json::Value> = (0..2)
+        .map(|k| {
+            let mut m = marker_truth(ids[k], &poses[k]);
+            m["origin_px"] = serde_json::json!([origins[k].x, origins[k].y]);
+            m
+        })
+        .collect();
+    // Exactly the node's convention (vernier-interface/src/processing.rs): aTb of the SI-scaled poses.
+    let a_from_b = poses[0]
+        .scaled(METRES_PER_UM)
+        .relative(&poses[1].scaled(METRES_PER_UM));
+    let t = a_from_b.translation.vector;
+    let (_, _, yaw) = a_from_b.rotation.euler_angles();
+    serde_json::json!({
+        "file": file,
+        "markers": markers,
+        "relative": {
+            "a": ids[0], "b": ids[1],
+            "position_m": [t.x, t.y, t.z],
+            "yaw": yaw,
+        },
+    })
 }
 
 fn run(args: &Args) -> Result<(), String> {

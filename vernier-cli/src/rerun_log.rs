@@ -99,7 +99,7 @@ mod without_rerun {
 
 #[cfg(feature = "rerun")]
 mod with_rerun {
-    use super::{FrameLog, Polarity, RerunTarget};
+    use super::{FrameLog, GreyImage, Polarity, RerunTarget};
     use rerun::{Arrows2D, Color, Image, Points2D, RecordingStream, Scalars, TextLog};
     use vernier::phase::{PhaseEngine, PhaseParams};
 
@@ -136,10 +136,9 @@ mod with_rerun {
             let rec = &self.stream;
             rec.set_time_sequence("frame", frame.frame as i64);
             let image = frame.image;
-            let size = [image.width() as u32, image.height() as u32];
             rec.log(
                 "image",
-                &Image::from_l8(stretch_to_u8(image.pixels()), size),
+                &Image::from_l8(stretch_to_u8(image.pixels()), image_size(image)),
             )
             .map_err(rerun_error)?;
 
@@ -151,95 +150,60 @@ mod with_rerun {
                     &[]
                 }
             };
-            let axis_length = 0.1 * image.width().min(image.height()) as f32;
-            let origins: Vec<[f32; 2]> = markers
-                .iter()
-                .map(|m| [m.origin_px.x as f32, m.origin_px.y as f32])
-                .collect();
-            let labels: Vec<String> = markers.iter().map(|m| format!("id {}", m.id)).collect();
-            rec.log(
-                "image/markers",
-                &Points2D::new(origins.iter().copied())
-                    .with_labels(labels)
-                    .with_radii([3.0f32])
-                    .with_colors([Color::from_rgb(255, 200, 0)]),
-            )
-            .map_err(rerun_error)?;
-            // Pattern axes in the image (y down): x_p → (cos α, sin α), y_p → (−sin α, cos α).
-            let mut vectors = Vec::with_capacity(2 * markers.len());
-            let mut colors = Vec::with_capacity(2 * markers.len());
-            for m in markers {
-                let (s, c) = (m.pose.alpha as f32).sin_cos();
-                vectors.push([axis_length * c, axis_length * s]);
-                colors.push(Color::from_rgb(255, 40, 40));
-                vectors.push([-axis_length * s, axis_length * c]);
-                colors.push(Color::from_rgb(40, 220, 40));
-            }
-            let axis_origins = origins.iter().flat_map(|&o| [o, o]);
-            rec.log(
-                "image/axes",
-                &Arrows2D::from_vectors(vectors)
-                    .with_origins(axis_origins)
-                    .with_colors(colors),
-            )
-            .map_err(rerun_error)?;
-            for m in markers {
-                let base = format!("pose/marker_{}", m.id);
-                for (name, value) in [
-                    ("x_um", m.pose.x),
-                    ("y_um", m.pose.y),
-                    ("alpha_rad", m.pose.alpha),
-                    ("pixel_size_um", m.pose.pixel_size),
-                ] {
-                    rec.log(format!("{base}/{name}"), &Scalars::single(value))
-                        .map_err(rerun_error)?;
-                }
-            }
+            log_markers(rec, image, markers)?;
+            log_pose_series(rec, markers)?;
+            self.log_phase_views(image)
+        }
 
+        /// Logs the spectrum with its lobes and the wrapped phase of each lobe, from the phase
+        /// engine run on the whole image; a `log` entry instead when it finds no lobes.
+        fn log_phase_views(&mut self, image: &GreyImage) -> Result<(), String> {
+            let rec = &self.stream;
             let bright = image.as_bright_dots(self.polarity);
-            match self.engine.inspect(&bright, &PhaseParams::default()) {
-                Ok(inspection) => {
-                    let view = &inspection.spectrum;
-                    rec.log(
-                        "spectrum",
-                        &Image::from_l8(
-                            stretch_to_u8(&view.log_magnitude),
-                            [view.width as u32, view.height as u32],
-                        ),
-                    )
-                    .map_err(rerun_error)?;
-                    let mut lobe_points = Vec::new();
-                    let mut lobe_labels = Vec::new();
-                    for (i, lobe) in inspection.analysis.lobes.iter().enumerate() {
-                        for sign in [1, -1] {
-                            let (x, y) = view.bin_position(sign * lobe.kx, sign * lobe.ky);
-                            lobe_points.push([x as f32, y as f32]);
-                            lobe_labels.push(format!("lobe {}", i + 1));
-                        }
-                    }
-                    rec.log(
-                        "spectrum/lobes",
-                        &Points2D::new(lobe_points)
-                            .with_labels(lobe_labels)
-                            .with_radii([4.0f32])
-                            .with_colors([Color::from_rgb(255, 60, 60)]),
-                    )
-                    .map_err(rerun_error)?;
-                    for (i, phase) in inspection.wrapped_phase.iter().enumerate() {
-                        rec.log(
-                            format!("phase/lobe_{}", i + 1),
-                            &Image::from_l8(phase_to_u8(phase), size),
-                        )
-                        .map_err(rerun_error)?;
-                    }
-                }
+            let inspection = match self.engine.inspect(&bright, &PhaseParams::default()) {
+                Ok(inspection) => inspection,
                 Err(e) => {
-                    rec.log(
-                        "log",
-                        &TextLog::new(format!("no spectrum view: {e}")).with_level("INFO"),
-                    )
-                    .map_err(rerun_error)?;
+                    return rec
+                        .log(
+                            "log",
+                            &TextLog::new(format!("no spectrum view: {e}")).with_level("INFO"),
+                        )
+                        .map_err(rerun_error);
                 }
+            };
+            let view = &inspection.spectrum;
+            rec.log(
+                "spectrum",
+                &Image::from_l8(
+                    stretch_to_u8(&view.log_magnitude),
+                    [view.width as u32, view.height as u32],
+                ),
+            )
+            .map_err(rerun_error)?;
+            // Each lobe and its mirror image (the spectrum of a real image is symmetric).
+            let mut lobe_points = Vec::new();
+            let mut lobe_labels = Vec::new();
+            for (i, lobe) in inspection.analysis.lobes.iter().enumerate() {
+                for sign in [1, -1] {
+                    let (x, y) = view.bin_position(sign * lobe.kx, sign * lobe.ky);
+                    lobe_points.push([x as f32, y as f32]);
+                    lobe_labels.push(format!("lobe {}", i + 1));
+                }
+            }
+            rec.log(
+                "spectrum/lobes",
+                &Points2D::new(lobe_points)
+                    .with_labels(lobe_labels)
+                    .with_radii([4.0f32])
+                    .with_colors([Color::from_rgb(255, 60, 60)]),
+            )
+            .map_err(rerun_error)?;
+            for (i, phase) in inspection.wrapped_phase.iter().enumerate() {
+                rec.log(
+                    format!("phase/lobe_{}", i + 1),
+                    &Image::from_l8(phase_to_u8(phase), image_size(image)),
+                )
+                .map_err(rerun_error)?;
             }
             Ok(())
         }
@@ -248,6 +212,74 @@ mod with_rerun {
         pub fn finish(self) -> Result<(), String> {
             self.stream.flush_blocking().map_err(rerun_error)
         }
+    }
+
+    /// Width and height of `image`, pixels, as rerun takes them.
+    fn image_size(image: &GreyImage) -> [u32; 2] {
+        [image.width() as u32, image.height() as u32]
+    }
+
+    /// Logs the marker origins labelled with their IDs (`image/markers`) and each marker's
+    /// pattern x (red) and y (green) axes (`image/axes`), a tenth of the image's smaller side
+    /// long, in image pixels.
+    fn log_markers(
+        rec: &RecordingStream,
+        image: &GreyImage,
+        markers: &[vernier::MarkerPose],
+    ) -> Result<(), String> {
+        let axis_length = 0.1 * image.width().min(image.height()) as f32;
+        let origins: Vec<[f32; 2]> = markers
+            .iter()
+            .map(|m| [m.origin_px.x as f32, m.origin_px.y as f32])
+            .collect();
+        let labels: Vec<String> = markers.iter().map(|m| format!("id {}", m.id)).collect();
+        rec.log(
+            "image/markers",
+            &Points2D::new(origins.iter().copied())
+                .with_labels(labels)
+                .with_radii([3.0f32])
+                .with_colors([Color::from_rgb(255, 200, 0)]),
+        )
+        .map_err(rerun_error)?;
+        // Pattern axes in the image (y down): x_p → (cos α, sin α), y_p → (−sin α, cos α).
+        let mut vectors = Vec::with_capacity(2 * markers.len());
+        let mut colors = Vec::with_capacity(2 * markers.len());
+        for m in markers {
+            let (s, c) = (m.pose.alpha as f32).sin_cos();
+            vectors.push([axis_length * c, axis_length * s]);
+            colors.push(Color::from_rgb(255, 40, 40));
+            vectors.push([-axis_length * s, axis_length * c]);
+            colors.push(Color::from_rgb(40, 220, 40));
+        }
+        let axis_origins = origins.iter().flat_map(|&o| [o, o]);
+        rec.log(
+            "image/axes",
+            &Arrows2D::from_vectors(vectors)
+                .with_origins(axis_origins)
+                .with_colors(colors),
+        )
+        .map_err(rerun_error)
+    }
+
+    /// Logs each marker's pose as scalars `pose/marker_<id>/{x_um, y_um, alpha_rad,
+    /// pixel_size_um}` (pattern units, µm by convention; radians).
+    fn log_pose_series(
+        rec: &RecordingStream,
+        markers: &[vernier::MarkerPose],
+    ) -> Result<(), String> {
+        for m in markers {
+            let base = format!("pose/marker_{}", m.id);
+            for (name, value) in [
+                ("x_um", m.pose.x),
+                ("y_um", m.pose.y),
+                ("alpha_rad", m.pose.alpha),
+                ("pixel_size_um", m.pose.pixel_size),
+            ] {
+                rec.log(format!("{base}/{name}"), &Scalars::single(value))
+                    .map_err(rerun_error)?;
+            }
+        }
+        Ok(())
     }
 
     /// Linear contrast stretch of `values` to 0–255 (a flat image becomes mid grey).

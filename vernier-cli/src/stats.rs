@@ -338,8 +338,37 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
     }
     let by_id: BTreeMap<u64, &[&PoseRow]> =
         markers.iter().map(|s| (s.id, s.rows.as_slice())).collect();
-    let pairs: Vec<(u64, u64)> = if !args.pairs.is_empty() {
-        args.pairs.clone()
+    let pairs = pairs_to_report(&args.pairs, &by_id)?;
+    print_table_header();
+    // Sample counts of the printed rows, for the spread at the end.
+    let mut counts = BTreeSet::new();
+    for s in &markers {
+        let mut own = Samples::new(format!("{}", s.id));
+        for r in &s.rows {
+            if let (Some(x), Some(y), Some(alpha)) = (r.x, r.y, r.alpha) {
+                own.push(x, y, alpha);
+            }
+        }
+        own.print(&mut counts);
+    }
+    print_pairs(&pairs, &by_id, &mut counts)?;
+    if let Some((other, path)) = other {
+        print_against(&by_id, &other, path, &mut counts);
+    }
+    println!();
+    print_spread(&counts);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The relative pairs `(a, b)` to report: those asked for (`--pair`), else every pair of
+/// the table's markers when they are at most [`MAX_DEFAULT_MARKERS`], else none; an error
+/// when an asked-for marker is not in the table.
+fn pairs_to_report(
+    asked: &[(u64, u64)],
+    by_id: &BTreeMap<u64, &[&PoseRow]>,
+) -> Result<Vec<(u64, u64)>, String> {
+    let pairs: Vec<(u64, u64)> = if !asked.is_empty() {
+        asked.to_vec()
     } else if by_id.len() <= MAX_DEFAULT_MARKERS {
         let ids: Vec<u64> = by_id.keys().copied().collect();
         ids.iter()
@@ -357,6 +386,11 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
             "--pair {a}:{b}: marker {a} or {b} is not in the table"
         ));
     }
+    Ok(pairs)
+}
+
+/// Prints the noise formula and the column headings, with units.
+fn print_table_header() {
     println!(
         "noise = 1.4826·median|v[n+1] − 2v[n] + v[n−1]|/√6 (white noise on a smooth motion); \
          std includes the motion"
@@ -376,17 +410,16 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
         "{:<14} {:>7} {:>25} {:>25} {:>25}",
         "", "", "(pattern units)", "(pattern units)", "(µrad)"
     );
-    let mut counts = BTreeSet::new();
-    for s in &markers {
-        let mut own = Samples::new(format!("{}", s.id));
-        for r in &s.rows {
-            if let (Some(x), Some(y), Some(alpha)) = (r.x, r.y, r.alpha) {
-                own.push(x, y, alpha);
-            }
-        }
-        own.print(&mut counts);
-    }
-    for (a, b) in pairs {
+}
+
+/// Prints a row per relative pair (`b` in `a`'s frame), adding its sample count to
+/// `counts`; a pair never seen together gets a row saying so.
+fn print_pairs(
+    pairs: &[(u64, u64)],
+    by_id: &BTreeMap<u64, &[&PoseRow]>,
+    counts: &mut BTreeSet<usize>,
+) -> Result<(), String> {
+    for &(a, b) in pairs {
         let (Some(ra), Some(rb)) = (by_id.get(&a), by_id.get(&b)) else {
             return Err(format!(
                 "--pair {a}:{b}: marker {a} or {b} is not in the table"
@@ -396,15 +429,10 @@ pub fn run(args: &StatsArgs) -> Result<ExitCode, String> {
         if rel.x.is_empty() {
             println!("{:<14} {:>7} (never seen together)", rel.name, 0);
         } else {
-            rel.print(&mut counts);
+            rel.print(counts);
         }
     }
-    if let Some((other, path)) = other {
-        print_against(&by_id, &other, path, &mut counts);
-    }
-    println!();
-    print_spread(&counts);
-    Ok(ExitCode::SUCCESS)
+    Ok(())
 }
 
 #[cfg(test)]

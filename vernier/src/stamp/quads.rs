@@ -882,25 +882,14 @@ impl QuadFinder {
             {
                 *m = sum * inv * inv_rows;
             }
-            let row = &small[r * sw..(r + 1) * sw];
-            let (b_row, d_row) = (
+            threshold_row(
+                &small[r * sw..(r + 1) * sw],
+                &self.means,
+                offset,
+                (&mut self.above, &mut self.below),
                 &mut bright.words[r * stride..(r + 1) * stride],
                 &mut dark.words[r * stride..(r + 1) * stride],
             );
-            // One byte (0 or 1) per pixel, then 8 bytes to 8 bits at a time.
-            for ((a, b), (&v, &m)) in self
-                .above
-                .iter_mut()
-                .zip(self.below.iter_mut())
-                .zip(row.iter().zip(&self.means))
-            {
-                *a = u8::from(v > m + offset);
-                *b = u8::from(v < m - offset);
-            }
-            for (k, (a, b)) in self.above.chunks(64).zip(self.below.chunks(64)).enumerate() {
-                b_row[k] = pack_bits(a);
-                d_row[k] = pack_bits(b);
-            }
         }
     }
 
@@ -1196,6 +1185,33 @@ fn grow_row(src: &[u64], dst: &mut [u64], tail: u64) {
     }
     if let Some(last) = dst.last_mut() {
         *last &= tail;
+    }
+}
+
+/// One row of the threshold masks: sets bit `c % 64` of word `c / 64` of `bright_row` where
+/// pixel `c` of `row` is above its local mean (`means`) by more than `offset`, and of
+/// `dark_row` where it is below it by more than `offset`; `above` and `below` are scratch
+/// rows of the row's length.
+fn threshold_row(
+    row: &[f32],
+    means: &[f32],
+    offset: f32,
+    (above, below): (&mut [u8], &mut [u8]),
+    bright_row: &mut [u64],
+    dark_row: &mut [u64],
+) {
+    // One byte (0 or 1) per pixel, then 8 bytes to 8 bits at a time.
+    for ((a, b), (&v, &m)) in above
+        .iter_mut()
+        .zip(below.iter_mut())
+        .zip(row.iter().zip(means))
+    {
+        *a = u8::from(v > m + offset);
+        *b = u8::from(v < m - offset);
+    }
+    for (k, (a, b)) in above.chunks(64).zip(below.chunks(64)).enumerate() {
+        bright_row[k] = pack_bits(a);
+        dark_row[k] = pack_bits(b);
     }
 }
 
