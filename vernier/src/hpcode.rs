@@ -577,29 +577,12 @@ impl Measure<'_> {
             );
             Ok(None)
         };
-        let found = match self.marker_window(image, triple)? {
+        let (center, analysis, read) = match self.locate_and_read(image, triple)? {
             Ok(found) => found,
             Err(why) => return reject(&why),
         };
-        let (center, analysis, grid) = found;
         let size = analysis.size.1;
         let window_center = Vector2::new(center.0 as f64, center.1 as f64);
-        let (grid, dots, dots_std) = match on_its_dots(image, grid, triple) {
-            Ok(found) => found,
-            Err(why) => return reject(why),
-        };
-        let input = ReadInput {
-            triple,
-            analysis: &analysis,
-            window_center,
-            grid,
-            dots,
-            dots_std,
-        };
-        let read = match self.read_marker_or_sharpened(image, &input) {
-            Ok(read) => read,
-            Err(why) => return reject(&why),
-        };
         let MarkerRead {
             reading,
             finders,
@@ -646,6 +629,34 @@ impl Measure<'_> {
             phase_std,
             yaw_std,
         }))
+    }
+
+    /// The marker of `triple` up to its field fit: its window's centre (image pixels) and
+    /// planes, and its dots located and ID read. The inner `Err` says why there is no marker.
+    fn locate_and_read(
+        &mut self,
+        image: &GreyImage,
+        triple: &FinderTriple,
+    ) -> Result<std::result::Result<((i64, i64), PhaseAnalysis, MarkerRead), String>> {
+        let (center, analysis, grid) = match self.marker_window(image, triple)? {
+            Ok(found) => found,
+            Err(why) => return Ok(Err(why)),
+        };
+        let (grid, dots, dots_std) = match on_its_dots(image, grid, triple) {
+            Ok(found) => found,
+            Err(why) => return Ok(Err(why.to_string())),
+        };
+        let input = ReadInput {
+            triple,
+            analysis: &analysis,
+            window_center: Vector2::new(center.0 as f64, center.1 as f64),
+            grid,
+            dots,
+            dots_std,
+        };
+        Ok(self
+            .read_marker_or_sharpened(image, &input)
+            .map(|read| (center, analysis, read)))
     }
 
     /// The window of the marker of `triple` and its planes and grid: on the finders' window

@@ -46,36 +46,19 @@ pub(super) fn fit_pass(
     // settling at the iteration limit (aliased harmonics on a 4-px grid, which their imaginary
     // parts couple more than real ones) is judged as it stands: tied, it may settle. A warm
     // model tied already goes on tied (the dots' shape does not change between frames).
-    let (mut step, free_settled) = match converge(image, &field, mask, &mut model, goal, &mut run) {
+    let (step, free_settled) = match converge(image, &field, mask, &mut model, goal, &mut run) {
         Ok(step) => (step, true),
         Err(Stall::AtLimit(step)) if !model.tied => (*step, false),
         Err(_) => return None,
     };
-    let shift = if model.tied {
-        None
-    } else {
-        symmetric_shift(&model, &step)
-    };
-    match shift {
-        Some(shift) => {
-            let mut tied = model.clone();
-            tied.tie(shift);
-            // Not a closure: it would be compiled apart from the AVX2 caller, without its
-            // target features.
-            let settled = match run.add_shift(shift.map(f64::abs)) {
-                Some(()) => converge(image, &field, mask, &mut tied, goal, &mut run),
-                None => Err(Stall::Failed),
-            };
-            match settled {
-                Ok(tied_step) => (model, step) = (tied, tied_step),
-                // A tied fit that does not settle leaves the free one standing, if it settled.
-                Err(_) if free_settled => {}
-                Err(_) => return None,
-            }
-        }
-        None if free_settled => {}
-        None => return None,
-    }
+    let (mut model, step) = tie_harmonics(
+        image,
+        (&field, mask),
+        goal,
+        &mut run,
+        (model, step),
+        free_settled,
+    )?;
     // The planes the sweeps converged to, where the next frame's sweeps will converge.
     let converged = model.planes;
     // The planes as the tilt leaves them at the centre.
@@ -88,6 +71,42 @@ pub(super) fn fit_pass(
     }
     let fit = finished_fit(model, &step, &field, start, converged, run.iterations);
     Some((fit, step.tilt_misfit))
+}
+
+/// A free stage's model and last step `free` tied to the dot centres where the harmonics'
+/// phases show point-symmetric dots ([`symmetric_shift`]), and settled again; the free ones
+/// where they do not, or where the tied fit does not settle and the free one did
+/// (`free_settled`). `None` when neither settled.
+#[inline(always)]
+fn tie_harmonics(
+    image: &GreyImage,
+    (field, mask): (&FieldBox, &NodeMask),
+    goal: &Goal,
+    run: &mut Run,
+    (model, step): (Model, Step),
+    free_settled: bool,
+) -> Option<(Model, Step)> {
+    let shift = if model.tied {
+        None
+    } else {
+        symmetric_shift(&model, &step)
+    };
+    let Some(shift) = shift else {
+        return free_settled.then_some((model, step));
+    };
+    let mut tied = model.clone();
+    tied.tie(shift);
+    // Not a closure: it would be compiled apart from the AVX2 caller, without its target
+    // features.
+    let settled = match run.add_shift(shift.map(f64::abs)) {
+        Some(()) => converge(image, field, mask, &mut tied, goal, run),
+        None => Err(Stall::Failed),
+    };
+    match settled {
+        Ok(tied_step) => Some((tied, tied_step)),
+        // A tied fit that does not settle leaves the free one standing, if it settled.
+        Err(_) => free_settled.then_some((model, step)),
+    }
 }
 
 /// The fit of a pass that converged on `model` (its planes moved to where the tilt leaves
@@ -307,17 +326,13 @@ pub(super) fn converge(
             set_robust_weights(model, &step, mask);
         }
         // With the weights frozen, the iterations solve one fixed problem and contract
-        // geometrically. One whose contraction (over the last sweep or the last two,
-        // [`StepHistory::contraction`]) cannot reach convergence in the iterations left (a
-        // field the model does not describe, harmonics that swap residual with the planes)
-        // would use them all up and still be refused, so it is given up at once when its step
-        // is large, or when it happens twice running (one slow iteration is a weakly
-        // determined harmonic settling). A slow but steady one runs on.
+        // geometrically. One that cannot reach convergence in the iterations left is given up
+        // at once when its step is large, or when it happens twice running (one slow
+        // iteration is a weakly determined harmonic settling). A slow but steady one runs on.
         let contraction = steps.contraction(largest);
         let left = (MAX_ITERATIONS - stage_iteration) as f64;
         let slow = run.frozen_at.is_some_and(|f| iteration > f + 1)
-            && contraction.is_some_and(|(_, fastest)| sweeps_to_converge(largest, fastest) > left)
-            && largest >= CONVERGED;
+            && too_slow(contraction, largest, left);
         if slow && (largest > GIVE_UP_STEP || slow_before) {
             log::debug!(
                 "whole-field fit not contracting: step {largest:.1e} rad after {:.1e}",
@@ -326,15 +341,8 @@ pub(super) fn converge(
             return Err(Stall::Failed);
         }
         slow_before = slow;
-        // The steps still to come: the geometric tail of the frozen problem's contraction over
-        // the last sweep (which needs a previous step of this stage). Gauss–Newton speeds up
-        // as it converges, so the last sweep's contraction is the one still to come; where a
-        // pair of sweeps contracts and its second step grows, the next pair's first step is
-        // large again and the test waits for it.
-        let tail = match (run.frozen_at, contraction) {
-            (Some(f), Some((last, _))) if iteration > f && last < 1.0 => {
-                largest * last / (1.0 - last)
-            }
+        let tail = match run.frozen_at {
+            Some(f) if iteration > f => steps_to_come(contraction, largest),
             _ => f64::INFINITY,
         };
         steps.push(largest);
@@ -350,6 +358,27 @@ pub(super) fn converge(
         }
     }
     Err(Stall::Failed)
+}
+
+/// Whether a frozen problem whose steps contract as `contraction` shows (over the last sweep
+/// or the last two, [`StepHistory::contraction`]) cannot bring its step `largest` under
+/// [`CONVERGED`] in the `left` sweeps remaining: a field the model does not describe, or
+/// harmonics that swap residual with the planes, would use them all up and still be refused.
+fn too_slow(contraction: Option<(f64, f64)>, largest: f64, left: f64) -> bool {
+    contraction.is_some_and(|(_, fastest)| sweeps_to_converge(largest, fastest) > left)
+        && largest >= CONVERGED
+}
+
+/// The steps still to come after a step `largest` of the frozen problem: the geometric tail of
+/// its contraction over the last sweep (infinite without a previous step of this stage, or
+/// without contraction). Gauss–Newton speeds up as it converges, so the last sweep's
+/// contraction is the one still to come; where a pair of sweeps contracts and its second step
+/// grows, the next pair's first step is large again and the test waits for it.
+fn steps_to_come(contraction: Option<(f64, f64)>, largest: f64) -> f64 {
+    match contraction {
+        Some((last, _)) if last < 1.0 => largest * last / (1.0 - last),
+        _ => f64::INFINITY,
+    }
 }
 
 /// Moves each plane by its correction in `step` (normalised coordinates of `frame`); how far
