@@ -637,7 +637,7 @@ impl Measure<'_> {
         &mut self,
         image: &GreyImage,
         triple: &FinderTriple,
-    ) -> Result<std::result::Result<((i64, i64), PhaseAnalysis, MarkerRead), String>> {
+    ) -> Result<std::result::Result<ReadResult, String>> {
         let (center, analysis, grid) = match self.marker_window(image, triple)? {
             Ok(found) => found,
             Err(why) => return Ok(Err(why)),
@@ -1027,6 +1027,10 @@ fn planes_agree_with_dots(
 
 /// A window's centre pixel (index S/2), its phase analysis and the marker grid it gives.
 type WindowResult = ((i64, i64), PhaseAnalysis, fine::MarkerGrid);
+
+/// A window's centre pixel, its phase analysis and the marker read on its dots
+/// ([`Measure::locate_and_read`]).
+type ReadResult = ((i64, i64), PhaseAnalysis, MarkerRead);
 
 /// Pixel at index S/2 of the window that covers the pixels symmetric about
 /// `floor(center) + ½`, as the engine's separable window is: a rotated or flipped image then
