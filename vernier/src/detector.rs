@@ -202,15 +202,18 @@ pub struct DetectorSettings {
     /// Measure the out-of-plane angles too (6-DoF pose, docs/design.md#pose-3d). Default
     /// `false`: planar poses, `beta = gamma = 0`.
     ///
-    /// Only observable for Megarena patterns (their two absolute phase planes fix the affine
-    /// map pattern → image); for the other marker types it is refused
+    /// Measured for Megarena patterns and periodic grids (their two phase planes fix the
+    /// affine map pattern → image; a periodic grid's axes are labelled by its planar `alpha`,
+    /// docs/design.md#pose-3d); for HP codes and stamps it is refused
     /// ([`DetectorSettings::to_config`] errs on parameter `pose_3d`), never silently planar.
     /// When set, each [`MarkerPose::pose`] is the orthographic out-of-plane solution:
     /// `beta` (about the pattern's intrinsic y axis) and `gamma` (about its intrinsic x axis),
     /// radians, in the frames of [`crate::pose`] (`cTp = Rz(α)·Ry(β)·Rx(γ)·Trans(x, y, 0)`,
     /// camera x right, y down, z into the scene); `alpha` and `pixel_size` are then those of
     /// the same 3-D solution (they differ from the planar ones by terms of order `β·γ`), `x`,
-    /// `y` are unchanged and `z` stays 0 (no focal length: the depth is unobserved). Of the two
+    /// `y` those of the same pattern point at the image centre (a periodic grid: relative to
+    /// the same node, through the 3-D solution's affine map) and `z` stays 0 (no focal length:
+    /// the depth is unobserved). Of the two
     /// mirror solutions `(β, γ)` and `(−β, −γ)`, which no orthographic image tells apart, the
     /// one the perspective cue favours is reported, its strength in
     /// [`MarkerPose::pose_3d_cue_strength`]; [`MarkerPose::covariance`] then gives roll and
