@@ -44,7 +44,8 @@ pub struct DetectorFlags {
     pub bitmap: Vec<PathBuf>,
     /// Also measure the out-of-plane angles `beta` (about the pattern's y axis) and `gamma`
     /// (about its x axis), radians: 6-DoF pose, orthographic model, `z` stays 0. Megarena
-    /// only (an error for other marker types). Of the two mirror solutions `(beta, gamma)` and
+    /// patterns and periodic grids (an error for HP codes and stamps). Of the two mirror
+    /// solutions `(beta, gamma)` and
     /// `(-beta, -gamma)` the perspective cue's choice is printed, its strength (0-1) in the
     /// JSON as `pose_3d_cue_strength`.
     #[arg(long = "pose-3d")]

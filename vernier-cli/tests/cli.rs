@@ -257,6 +257,79 @@ fn detect_pose_3d_prints_the_out_of_plane_angles() {
 }
 
 #[test]
+fn detect_pose_3d_on_a_periodic_grid() {
+    use vernier::layout::PeriodicLayout;
+    use vernier::render::{render, RenderOptions};
+    // A periodic grid (P = 10) tilted by beta = 0.2, gamma = 0.1 rad, orthographic render: one
+    // of the two mirror solutions, magnitudes exact; an HP code refuses the flag.
+    let dir = scratch("pose3d_periodic");
+    let image = dir.join("tilted.png");
+    let truth = vernier::Pose {
+        x: 1.0,
+        y: -2.0,
+        z: 0.0,
+        alpha: 0.4,
+        beta: 0.2,
+        gamma: 0.1,
+        pixel_size: 1.1,
+    };
+    let options = RenderOptions {
+        blur_sigma: 0.5,
+        bit_depth: Some(16),
+        ..RenderOptions::new(256, 256)
+    };
+    render(
+        &PeriodicLayout::new(10.0, 61, 61).unwrap(),
+        &truth,
+        &options,
+    )
+    .unwrap()
+    .save_png(&image, 16)
+    .unwrap();
+    let out = vernier()
+        .args(["detect", "--period", "10", "--pose-3d"])
+        .arg(&image)
+        .output()
+        .unwrap();
+    let line = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value = serde_json::from_str(line.trim()).unwrap();
+    let marker = &json["markers"][0];
+    let (beta, gamma) = (
+        marker["beta"].as_f64().unwrap(),
+        marker["gamma"].as_f64().unwrap(),
+    );
+    assert!(
+        (beta.abs() - 0.2).abs() < 1e-3 && (gamma.abs() - 0.1).abs() < 1e-3,
+        "{line}"
+    );
+    assert!(beta * gamma > 0.0, "{line}");
+    assert!(marker["pose_3d_cue_strength"].as_f64().is_some(), "{line}");
+    let refused = vernier()
+        .args([
+            "detect",
+            "--hpcode",
+            "--period",
+            "10",
+            "--code-size",
+            "33",
+            "--pose-3d",
+        ])
+        .arg(&image)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        !refused.status.success() && stderr.contains("pose_3d"),
+        "{stderr}"
+    );
+}
+
+#[test]
 fn calibrate_pools_tiles_and_detect_takes_the_calibrated_pixel_size() {
     // A grid filling 640 × 480 px at 0.9 units per pixel, 1 % noise, seen twice.
     let dir = scratch("calibrate");

@@ -397,8 +397,8 @@ pub fn specs() -> Vec<ParamSpec> {
             "pose_3d",
             V::Boolean(false),
             "Also measure the out-of-plane angles (pitch, roll) from the phase planes, with \
-             their covariance (Megarena only: with another marker type the detector is \
-             refused with the reason, never silently planar).",
+             their covariance (Megarena patterns and periodic grids: with an HP code or stamp \
+             the detector is refused with the reason, never silently planar).",
         ),
         spec(
             "field_fit",

@@ -883,6 +883,7 @@ mod tests {
             pose_3d_cue_strength: None,
             window_px: 256,
             yaw_std: None,
+            slope_std: None,
             measured_pixel_size: pose.pixel_size,
             pixel_size_std: 0.0,
         };

@@ -32,7 +32,7 @@ pub struct MarkerPose {
     /// Confidence of the coarse decoding in `[0, 1]` where the marker type has one.
     pub decode_confidence: Option<f64>,
     /// `Some` when `pose` carries measured out-of-plane angles `beta`, `gamma`
-    /// ([`DetectorSettings::pose_3d`], Megarena only): the strength of the perspective cue that
+    /// ([`DetectorSettings::pose_3d`], Megarena patterns and periodic grids): the strength of the perspective cue that
     /// chose between the two mirror solutions `(β, γ)` and `(−β, −γ)` (see
     /// [`crate::megarena::pose3d::OutOfPlanePose::cue_strength`]: ≈ 1 for a clear cue, near 0
     /// when the image shows no perspective and the sign of both angles is a guess). `None` for
@@ -46,6 +46,12 @@ pub struct MarkerPose {
     /// whole-field fit, docs/design.md#field-fit); `None`: [`MarkerPose::covariance`] derives
     /// it from `phase_std` and the window.
     pub yaw_std: Option<f64>,
+    /// Standard deviation of each component (`∂φ/∂col`, `∂φ/∂row`) of the phase gradients of
+    /// the pattern x and y planes, rad/pixel, where the marker type's fit states it (periodic
+    /// grids: [`PeriodicDetection::gradient_std`]); `None`: [`MarkerPose::covariance`] takes a
+    /// flat fit over the window, `√12·phase_std/window_px` (Megarena). Sets the roll, pitch
+    /// and 3-D yaw variances of out-of-plane poses only.
+    pub slope_std: Option<[f64; 2]>,
     /// The marker's own scale, pattern units per pixel, measured from its phase planes. It is
     /// `pose.pixel_size` unless a calibrated pixel size was given
     /// ([`DetectorSettings::pixel_size`], docs/design.md#calibrated-scale).
@@ -76,10 +82,13 @@ impl MarkerPose {
     /// With out-of-plane angles ([`MarkerPose::pose_3d_cue_strength`] set), `cTp`'s rotation
     /// `Rz(α)·Ry(β)·Rx(γ)` is roll `γ`, pitch `β`, yaw `α`, and the roll/pitch block is the
     /// covariance of `(γ, β)` from
-    /// [`angle_covariance`](crate::megarena::pose3d::angle_covariance): the same slope-noise
-    /// model as the yaw, `σ_g = σ_c·√12/window_px` on each of the four phase-gradient
-    /// components, propagated numerically through the orthographic solution. It does not include
-    /// the mirror ambiguity (a wrong cue flips both signs). `z` stays unobserved (`1e6`).
+    /// [`angle_covariance`](crate::megarena::pose3d::angle_covariance): a slope error `σ_g` on
+    /// each of the four phase-gradient components ([`MarkerPose::slope_std`], else
+    /// `σ_g = σ_c·√12/window_px`, the flat fit of the yaw's model), propagated numerically
+    /// through the orthographic solution. The 3-D `alpha` is the image direction of the
+    /// pattern x axis, normal to the y plane's gradient: its σ is that plane's direction σ,
+    /// `σ_α = σ_g,y/k`. It does not include the mirror ambiguity (a wrong cue flips both
+    /// signs). `z` stays unobserved (`1e6`).
     pub fn covariance(&self, period: f64, window_px: f64) -> [[f64; 6]; 6] {
         let mut cov = [[0.0; 6]; 6];
         let sx = period * self.phase_std[0] / std::f64::consts::TAU;
@@ -109,21 +118,29 @@ impl MarkerPose {
         cov[5][5] = s_alpha * s_alpha;
         if self.pose_3d_cue_strength.is_some() {
             // Slope of a plane fitted over an L-pixel window from offset noise σ_c:
-            // σ_slope = σ_c·√12/L (the yaw's model), for ∂φ/∂col and ∂φ/∂row of each plane.
-            let slope = |k: usize| {
+            // σ_slope = σ_c·√12/L (the yaw's model), for ∂φ/∂col and ∂φ/∂row of each plane,
+            // unless the fit states its own.
+            let flat = |k: usize| {
                 if window_px > 0.0 {
                     self.phase_std[k] * 12f64.sqrt() / window_px
                 } else {
                     f64::INFINITY
                 }
             };
-            let angles =
-                crate::megarena::pose3d::angle_covariance(&self.pose, period, [slope(0), slope(1)]);
+            let slopes = self.slope_std.unwrap_or_else(|| [flat(0), flat(1)]);
+            let angles = crate::megarena::pose3d::angle_covariance(&self.pose, period, slopes);
             // (β, γ) → (pitch, roll) = indices (4, 3).
             cov[4][4] = angles[0][0];
             cov[3][3] = angles[1][1];
             cov[3][4] = angles[0][1];
             cov[4][3] = angles[0][1];
+            // The 3-D alpha is normal to the y plane's gradient: that plane's direction σ.
+            let s_alpha = if k > 0.0 {
+                slopes[1] / k
+            } else {
+                f64::INFINITY
+            };
+            cov[5][5] = s_alpha * s_alpha;
         }
         cov
     }
@@ -185,15 +202,18 @@ pub struct DetectorSettings {
     /// Measure the out-of-plane angles too (6-DoF pose, docs/design.md#pose-3d). Default
     /// `false`: planar poses, `beta = gamma = 0`.
     ///
-    /// Only observable for Megarena patterns (their two absolute phase planes fix the affine
-    /// map pattern → image); for the other marker types it is refused
+    /// Measured for Megarena patterns and periodic grids (their two phase planes fix the
+    /// affine map pattern → image; a periodic grid's axes are labelled by its planar `alpha`,
+    /// docs/design.md#pose-3d); for HP codes and stamps it is refused
     /// ([`DetectorSettings::to_config`] errs on parameter `pose_3d`), never silently planar.
     /// When set, each [`MarkerPose::pose`] is the orthographic out-of-plane solution:
     /// `beta` (about the pattern's intrinsic y axis) and `gamma` (about its intrinsic x axis),
     /// radians, in the frames of [`crate::pose`] (`cTp = Rz(α)·Ry(β)·Rx(γ)·Trans(x, y, 0)`,
     /// camera x right, y down, z into the scene); `alpha` and `pixel_size` are then those of
     /// the same 3-D solution (they differ from the planar ones by terms of order `β·γ`), `x`,
-    /// `y` are unchanged and `z` stays 0 (no focal length: the depth is unobserved). Of the two
+    /// `y` those of the same pattern point at the image centre (a periodic grid: relative to
+    /// the same node, through the 3-D solution's affine map) and `z` stays 0 (no focal length:
+    /// the depth is unobserved). Of the two
     /// mirror solutions `(β, γ)` and `(−β, −γ)`, which no orthographic image tells apart, the
     /// one the perspective cue favours is reported, its strength in
     /// [`MarkerPose::pose_3d_cue_strength`]; [`MarkerPose::covariance`] then gives roll and
@@ -273,12 +293,12 @@ impl DetectorSettings {
                 .map(|p| crate::layout::Layout::period(p.layout()))
         });
         let pattern = pattern.as_ref();
-        if self.pose_3d && kind != MarkerKind::Megarena {
+        if self.pose_3d && !matches!(kind, MarkerKind::Megarena | MarkerKind::Periodic) {
             // Never silently planar: the caller asked for tilt that is not measured.
             return Err(Error::parameter(
                 "pose_3d",
-                "out-of-plane angles (beta, gamma) are measured for Megarena patterns only; \
-                 HP codes, stamps and periodic grids give planar poses: leave pose_3d off",
+                "out-of-plane angles (beta, gamma) are measured for Megarena patterns and \
+                 periodic grids only; HP codes and stamps give planar poses: leave pose_3d off",
             ));
         }
         match kind {
@@ -286,6 +306,7 @@ impl DetectorSettings {
                 let mut p = PeriodicParams::new(required_period(period)?);
                 p.polarity = self.polarity.unwrap_or_default();
                 p.field_fit = self.field_fit.unwrap_or(false);
+                p.pose_3d = self.pose_3d;
                 Ok(DetectorConfig::Periodic(p))
             }
             MarkerKind::Megarena => self.megarena_config(pattern, period),
@@ -699,18 +720,25 @@ impl Detector {
 
 impl From<&PeriodicDetection> for MarkerPose {
     fn from(found: &PeriodicDetection) -> Self {
+        // With pose_3d, the chosen orthographic 3-D solution replaces the planar pose (same
+        // grid node; alpha and pixel size of the 3-D decomposition).
+        let (pose, pose_3d_cue_strength) = match &found.out_of_plane {
+            Some(o) => (o.pose(), Some(o.cue_strength)),
+            None => (found.pose, None),
+        };
         MarkerPose {
             id: 0,
-            pose: found.pose,
+            pose,
             origin_px: found.origin_px,
             quality: found.analysis.quality,
             phase_std: found.phase_std,
             duplicate_id: false,
             decode_confidence: None,
-            pose_3d_cue_strength: None,
+            pose_3d_cue_strength,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
             yaw_std: found.yaw_std,
-            measured_pixel_size: found.pose.pixel_size,
+            slope_std: Some(found.gradient_std),
+            measured_pixel_size: pose.pixel_size,
             pixel_size_std: 0.0,
         }
     }
@@ -735,6 +763,7 @@ impl From<&MegarenaDetection> for MarkerPose {
             pose_3d_cue_strength,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
             yaw_std: None,
+            slope_std: None,
             measured_pixel_size: pose.pixel_size,
             pixel_size_std: 0.0,
         }
@@ -754,6 +783,7 @@ impl From<&StampDetection> for MarkerPose {
             pose_3d_cue_strength: None,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
             yaw_std: found.yaw_std,
+            slope_std: None,
             measured_pixel_size: found.pose.pixel_size,
             pixel_size_std: 0.0,
         }
@@ -773,6 +803,7 @@ impl From<&HpCodeMarker> for MarkerPose {
             pose_3d_cue_strength: None,
             window_px: found.analysis.size.0.min(found.analysis.size.1),
             yaw_std: found.yaw_std,
+            slope_std: None,
             measured_pixel_size: found.pose.pixel_size,
             pixel_size_std: 0.0,
         }
@@ -804,36 +835,39 @@ mod tests {
             pose_3d_cue_strength: None,
             window_px: 256,
             yaw_std: None,
+            slope_std: None,
             measured_pixel_size: 0.5,
             pixel_size_std: 0.0,
         }
     }
 
     /// `pose_3d` on a marker type whose tilt is not measured is refused with the parameter's
-    /// name, never silently planar; Megarena takes it.
+    /// name, never silently planar; Megarena and periodic grids take it.
     #[test]
     fn pose_3d_is_refused_where_tilt_is_not_measured() {
-        for kind in [MarkerKind::Periodic, MarkerKind::HpCode, MarkerKind::Stamp] {
-            let settings = DetectorSettings {
-                pattern_type: kind,
-                period: Some(10.0),
-                code_size: Some(33),
-                pose_3d: true,
-                ..DetectorSettings::default()
-            };
-            match settings.to_config() {
-                Err(e) => assert!(e.to_string().contains("pose_3d"), "{kind:?}: {e}"),
-                Ok(_) => panic!("{kind:?}: pose_3d accepted"),
-            }
-        }
-        let megarena = DetectorSettings {
-            pattern_type: MarkerKind::Megarena,
+        let settings = |pattern_type| DetectorSettings {
+            pattern_type,
             period: Some(10.0),
+            code_size: Some(33),
             code_depth: Some(8),
             pose_3d: true,
             ..DetectorSettings::default()
         };
-        assert!(megarena.to_config().is_ok());
+        for kind in [MarkerKind::HpCode, MarkerKind::Stamp] {
+            match settings(kind).to_config() {
+                Err(e) => {
+                    let e = e.to_string();
+                    assert!(e.contains("pose_3d"), "{kind:?}: {e}");
+                    assert!(e.contains("Megarena") && e.contains("periodic"), "{e}");
+                }
+                Ok(_) => panic!("{kind:?}: pose_3d accepted"),
+            }
+        }
+        assert!(settings(MarkerKind::Megarena).to_config().is_ok());
+        match settings(MarkerKind::Periodic).to_config() {
+            Ok(DetectorConfig::Periodic(p)) => assert!(p.pose_3d),
+            other => panic!("periodic: {other:?}"),
+        }
     }
 
     #[test]
@@ -871,10 +905,19 @@ mod tests {
         assert_eq!(tilted[3][4], tilted[4][3]);
         assert!(tilted[3][4].powi(2) <= tilted[3][3] * tilted[4][4]);
         assert_eq!(tilted[2][2], 1e6);
-        // The position block and the yaw are those of the planar model.
-        for (i, j) in [(0, 0), (0, 1), (1, 1), (5, 5)] {
+        // The position block is the planar model's; the yaw, one plane's direction under the
+        // flat model, equals the planar one when both planes are equally noisy.
+        for (i, j) in [(0, 0), (0, 1), (1, 1)] {
             assert_eq!(tilted[i][j], planar[i][j]);
         }
+        assert!((tilted[5][5] / planar[5][5] - 1.0).abs() < 1e-12);
+        // A fit's own slope σ replaces the flat model: the yaw is the y plane's direction σ.
+        let mut stated = m.clone();
+        stated.slope_std = Some([2e-5, 3e-5]);
+        let k = std::f64::consts::TAU * m.pose.pixel_size / period;
+        let own = stated.covariance(period, window);
+        assert!((own[5][5].sqrt() * k / 3e-5 - 1.0).abs() < 1e-12, "{own:?}");
+        assert!(own[3][3] > 0.0 && own[4][4] > 0.0 && own[3][3] != tilted[3][3]);
         // Linear regime: twice the phase noise, four times the variance.
         m.phase_std = [2e-3, 2e-3];
         let noisier = m.covariance(period, window);

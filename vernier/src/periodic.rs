@@ -3,13 +3,19 @@
 
 use crate::error::Result;
 use crate::grey_image::{GreyImage, Polarity};
+use crate::megarena::{pose3d, PatternPlanes};
 use crate::phase::{
     fit_dot_field_against, wrap_to_pi, FieldFit, NodeMask, PhaseAnalysis, PhaseEngine, PhaseParams,
     PhasePlane, Rival,
 };
 use crate::pose::Pose;
 use nalgebra::{Matrix2, Vector2};
-use std::f64::consts::{FRAC_PI_2, TAU};
+use std::f64::consts::{FRAC_PI_2, SQRT_2, TAU};
+
+/// Slope factor `κ` of a plane fitted by the phase engine under its sine-cubed window: the
+/// standard deviation of each gradient component is `κ·σ_c/L`, `σ_c` the phase offset's and
+/// `L` the window side, pixels (4.83–4.88 over 64–1024 px, docs/design.md#uncertainty).
+const ENGINE_SLOPE_FACTOR: f64 = 4.85;
 
 /// Settings of [`PeriodicDetector`].
 #[derive(Clone, Debug, PartialEq)]
@@ -25,6 +31,11 @@ pub struct PeriodicParams {
     /// dust and scratches ignored, but one sweep of the whole image per iteration (4–8):
     /// ~100× the engine's cost (155 ms against 1.5 ms at 512²). Default `false`.
     pub field_fit: bool,
+    /// Also measure the out-of-plane angles (docs/design.md#pose-3d): every detection then
+    /// carries [`PeriodicDetection::out_of_plane`], the orthographic solutions with the
+    /// perspective cue's choice (`z = 0`, no focal length), from the final planes (the field
+    /// fit's when there is one). Costs one demodulation pass over the image. Default `false`.
+    pub pose_3d: bool,
 }
 
 impl PeriodicParams {
@@ -35,6 +46,7 @@ impl PeriodicParams {
             polarity: Polarity::BrightDots,
             phase: PhaseParams::default(),
             field_fit: false,
+            pose_3d: false,
         }
     }
 }
@@ -58,6 +70,19 @@ pub struct PeriodicDetection {
     pub phase_std: [f64; 2],
     /// Standard deviation of `pose.alpha`, radians, when the field fit measured it.
     pub yaw_std: Option<f64>,
+    /// Standard deviation of each component (`∂φ/∂col`, `∂φ/∂row`) of the phase gradient of the
+    /// grid's x plane and of its y plane as labelled by `pose.alpha` ([`pattern_planes`]),
+    /// rad/pixel: `√2·yaw_std·|∇φ|` with the field fit (the two planes' direction errors,
+    /// independent, make the mean direction's), else the engine's slope of a plane under its
+    /// sine-cubed window, `4.85·σ_c/L` (`L` the analysed window's shorter side, pixels;
+    /// docs/design.md#uncertainty). What the out-of-plane angles' covariance is propagated from.
+    pub gradient_std: [f64; 2],
+    /// Out-of-plane pose (docs/design.md#pose-3d, `z = 0`) when [`PeriodicParams::pose_3d`] is
+    /// set; `None` otherwise. The grid's axes are labelled by the planar `pose.alpha` (see
+    /// [`pattern_planes`]); each candidate's `x, y` (pattern units, in `[−P/2, P/2)`) refer to
+    /// the same grid node as `pose` and `origin_px`, its `alpha` is the image direction of that
+    /// labelling's pattern x axis.
+    pub out_of_plane: Option<pose3d::OutOfPlanePose>,
 }
 
 /// Measures the pose of a periodic grid filling the image. Keeps FFT plans between calls.
@@ -128,6 +153,25 @@ impl PeriodicDetector {
             Some(fit) => (fit.phase_std_at(0.0, 0.0), Some(fit.mean_direction_std())),
             None => (analysis.phase_std, None),
         };
+        let order = axis_order(&planes, pose.alpha);
+        let gradient_std = match (&field, yaw_std) {
+            (Some(fit), Some(yaw)) => order.map(|l| SQRT_2 * yaw * fit.planes[l].frequency()),
+            _ => {
+                let window = analysis.size.0.min(analysis.size.1).max(1) as f64;
+                order.map(|l| ENGINE_SLOPE_FACTOR * phase_std[l] / window)
+            }
+        };
+        let out_of_plane = if self.params.pose_3d {
+            let axes = pattern_planes(&planes, pose.alpha);
+            Some(pose3d::out_of_plane(
+                image,
+                &axes,
+                self.params.period,
+                None,
+            )?)
+        } else {
+            None
+        };
         Ok(PeriodicDetection {
             pose,
             origin_px,
@@ -135,6 +179,8 @@ impl PeriodicDetector {
             field,
             phase_std,
             yaw_std,
+            gradient_std,
+            out_of_plane,
         })
     }
 }
@@ -185,6 +231,41 @@ pub fn periodic_pose(planes: &[PhasePlane; 2], period: f64) -> Pose {
     Pose::from_origin_in_image(node, alpha, pixel_size)
 }
 
+/// The grid's planes as the absolute planes of a pattern frame (pattern x plane, then y plane,
+/// right-handed in the image frame: x right, y down), the axes labelled by the planar
+/// orientation `alpha` (radians, image frame, e.g. [`periodic_pose`]'s, in `[0, π/2)`): the x
+/// plane is the one whose gradient points nearest `alpha`, the y plane the other, each negated
+/// where its gradient points the opposite way (the y plane's nearest `alpha + π/2`). Offsets
+/// are wrapped to `[−π, π)`: both phases 0 at the grid node nearest the image centre in phase,
+/// the node of [`periodic_pose`]. The input to [`pose3d::out_of_plane`].
+pub fn pattern_planes(planes: &[PhasePlane; 2], alpha: f64) -> PatternPlanes {
+    let along = |p: &PhasePlane, direction: f64| (p.angle() - direction).cos();
+    let [x, y] = axis_order(planes, alpha).map(|l| &planes[l]);
+    let oriented = |p: &PhasePlane, direction: f64| {
+        let p = if along(p, direction) < 0.0 {
+            p.flipped()
+        } else {
+            *p
+        };
+        PhasePlane {
+            c: wrap_to_pi(p.c),
+            ..p
+        }
+    };
+    [oriented(x, alpha), oriented(y, alpha + FRAC_PI_2)]
+}
+
+/// Indices of the planes of the grid's x and y axes as labelled by `alpha` (radians, image
+/// frame): the x plane's gradient is the one more nearly parallel to `alpha`.
+fn axis_order(planes: &[PhasePlane; 2], alpha: f64) -> [usize; 2] {
+    let along = |p: &PhasePlane| (p.angle() - alpha).cos().abs();
+    if along(&planes[0]) >= along(&planes[1]) {
+        [0, 1]
+    } else {
+        [1, 0]
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -221,6 +302,51 @@ mod tests {
             // The pose's origin is a grid node (the one at `node`, the nearest to the centre).
             let origin = pose.origin_in_image();
             assert!((origin - node).norm() < 1e-9, "{a1}: {origin:?}");
+        }
+    }
+
+    /// The planes of a pose through [`pattern_planes`] give back that pose whatever the
+    /// engine's order and signs, tilted or not: the labelling is right-handed.
+    #[test]
+    fn pattern_planes_give_back_the_pose_in_any_engine_order() {
+        let period = 10.0;
+        for (beta, gamma) in [(0.0, 0.0), (0.3, -0.2), (-0.1, 0.25)] {
+            let truth = Pose {
+                x: 2.0,
+                y: -3.0,
+                z: 0.0,
+                alpha: 0.6,
+                beta,
+                gamma,
+                pixel_size: 1.2,
+            };
+            let [px, py] = pose3d::planes_of_pose(&truth, period).unwrap();
+            // On the fronto-parallel fold the angles grow like the square root of the planes'
+            // rounding errors (≈ 1e-4 rad from 1e-16).
+            let tolerance = if beta == 0.0 && gamma == 0.0 {
+                1e-3
+            } else {
+                1e-9
+            };
+            for swap in [false, true] {
+                for (s1, s2) in [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
+                    let signed = |p: PhasePlane, s: f64| if s > 0.0 { p } else { p.flipped() };
+                    let (p1, p2) = (signed(px, s1), signed(py, s2));
+                    let engine = if swap { [p2, p1] } else { [p1, p2] };
+                    let alpha = periodic_pose(&engine, period).alpha;
+                    let axes = pattern_planes(&engine, alpha);
+                    let candidates = pose3d::orthographic_candidates(&axes, period, 0.0).unwrap();
+                    let found = candidates.iter().any(|c| {
+                        (c.alpha - truth.alpha).abs() < 1e-12
+                            && (c.beta - beta).abs() < tolerance
+                            && (c.gamma - gamma).abs() < tolerance
+                            && (c.pixel_size - truth.pixel_size).abs() < 1e-8
+                            && (c.x - truth.x).abs() < 1e-9
+                            && (c.y - truth.y).abs() < 1e-9
+                    });
+                    assert!(found, "({beta}, {gamma}) {swap} {s1} {s2}: {candidates:?}");
+                }
+            }
         }
     }
 }

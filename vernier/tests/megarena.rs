@@ -311,31 +311,6 @@ fn out_of_plane_candidates_contain_the_truth() {
     }
 }
 
-/// Pinhole render of `layout` at `pose` with focal length `focal` pixels: pixel rays are
-/// intersected with the pattern plane placed at depth `z = pixel_size·focal` (magnification
-/// `1/pixel_size` at the centre), raised-cosine dots point-sampled 2×2 per pixel.
-fn render_perspective(layout: &dyn Layout, pose: &Pose, focal: f64, size: usize) -> GreyImage {
-    let depth = pose.pixel_size * focal;
-    let rotation = pose.rotation();
-    let normal = rotation * nalgebra::Vector3::z();
-    let mut pixels = vec![0.0f32; size * size];
-    let c = (size / 2) as f64;
-    for row in 0..size {
-        for col in 0..size {
-            let mut sum = 0.0;
-            for (dx, dy) in [(-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25)] {
-                let ray = nalgebra::Vector3::new(col as f64 + dx - c, row as f64 + dy - c, focal);
-                let t = depth * normal.z / normal.dot(&ray);
-                let hit = ray * t - nalgebra::Vector3::new(0.0, 0.0, depth);
-                let p = rotation.transpose() * hit;
-                sum += layout.intensity(p.x - pose.x, p.y - pose.y);
-            }
-            pixels[row * size + col] = (sum / 4.0) as f32;
-        }
-    }
-    GreyImage::new(size, size, pixels).unwrap()
-}
-
 /// The pose of the perspective and tilt tests: an off-centre Megarena pattern tilted by
 /// `beta` (about its y axis) and `gamma` (about x), radians.
 fn tilted(beta: f64, gamma: f64) -> Pose {
@@ -356,7 +331,7 @@ fn perspective_cue_picks_the_right_mirror_solution() {
     for (beta, gamma) in [(0.35, -0.25), (-0.3, -0.3), (0.25, 0.4)] {
         let truth = tilted(beta, gamma);
         let focal = 8000.0;
-        let image = render_perspective(&layout, &truth, focal, 512);
+        let image = common::render_perspective(&layout, &truth, focal, 512);
         let mut detector = MegarenaDetector::new(MegarenaParams::new(10.0, 8).unwrap()).unwrap();
         let found = detector.detect(&image).unwrap();
         let out = found.out_of_plane(&image, Some(focal)).unwrap();
@@ -562,7 +537,7 @@ fn pose_3d_setting_measures_tilts_of_perspective_renders() {
     let (mut worst, mut weakest_cue) = (0.0f64, f64::INFINITY);
     for (beta, gamma) in tilts() {
         let truth = tilted(beta, gamma);
-        let image = render_perspective(&layout, &truth, focal, 512);
+        let image = common::render_perspective(&layout, &truth, focal, 512);
         let markers = detector.detect(&image).unwrap();
         assert_eq!(markers.len(), 1);
         let m = &markers[0];
@@ -725,18 +700,20 @@ fn pose_3d_setting_is_off_by_default_and_refused_for_other_types() {
     );
     let cov = m.covariance(10.0, 512.0);
     assert_eq!((cov[3][3], cov[4][4]), (1e6, 1e6));
-    // A periodic grid has no absolute planes to tilt: the setting is refused, naming itself,
-    // rather than giving silently planar poses.
-    let periodic = |pose_3d| DetectorSettings {
-        pattern_type: MarkerKind::Periodic,
+    // An HP code's tilt is not measured: the setting is refused, naming itself, rather than
+    // giving silently planar poses; a periodic grid takes it (tests/periodic_pose_3d.rs).
+    let other = |pattern_type, pose_3d| DetectorSettings {
+        pattern_type,
         period: Some(10.0),
+        code_size: Some(33),
         pose_3d,
         ..Default::default()
     };
-    assert!(periodic(false).to_config().is_ok());
-    match periodic(true).to_config() {
+    assert!(other(MarkerKind::HpCode, false).to_config().is_ok());
+    assert!(other(MarkerKind::Periodic, true).to_config().is_ok());
+    match other(MarkerKind::HpCode, true).to_config() {
         Err(e) => assert!(e.to_string().contains("pose_3d"), "{e}"),
-        Ok(_) => panic!("pose_3d accepted for a periodic grid"),
+        Ok(_) => panic!("pose_3d accepted for an HP code"),
     }
 }
 

@@ -4,6 +4,7 @@
 use std::f64::consts::{FRAC_PI_2, FRAC_PI_4};
 use std::path::PathBuf;
 use vernier::detector::{DetectorSettings, MarkerKind};
+use vernier::layout::Layout;
 use vernier::{Detector, GreyImage, Pose};
 
 /// Folder of the real test images: `$VERNIER_DATA_DIR`, else `../shared/data` beside the
@@ -408,4 +409,29 @@ pub fn degraded_views(
     }
     println!("all: {found_all} / {required_all} required markers found");
     failures
+}
+
+/// Pinhole render of `layout` at `pose` with focal length `focal` pixels: pixel rays are
+/// intersected with the pattern plane placed at depth `z = pixel_size·focal` (magnification
+/// `1/pixel_size` at the centre), the layout's intensity point-sampled 2×2 per pixel.
+pub fn render_perspective(layout: &dyn Layout, pose: &Pose, focal: f64, size: usize) -> GreyImage {
+    let depth = pose.pixel_size * focal;
+    let rotation = pose.rotation();
+    let normal = rotation * nalgebra::Vector3::z();
+    let mut pixels = vec![0.0f32; size * size];
+    let c = (size / 2) as f64;
+    for row in 0..size {
+        for col in 0..size {
+            let mut sum = 0.0;
+            for (dx, dy) in [(-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25)] {
+                let ray = nalgebra::Vector3::new(col as f64 + dx - c, row as f64 + dy - c, focal);
+                let t = depth * normal.z / normal.dot(&ray);
+                let hit = ray * t - nalgebra::Vector3::new(0.0, 0.0, depth);
+                let p = rotation.transpose() * hit;
+                sum += layout.intensity(p.x - pose.x, p.y - pose.y);
+            }
+            pixels[row * size + col] = (sum / 4.0) as f32;
+        }
+    }
+    GreyImage::new(size, size, pixels).unwrap()
 }
