@@ -488,6 +488,7 @@ mod tests {
             yaw_std: Some(5e-6),
             measured_pixel_size: 0.5,
             pixel_size_std: 1e-6,
+            slope_std: None,
         };
         let rows = PoseRow::from_result(0, None, "a.png", &Ok(vec![marker]), 1.0, period);
         let row = &rows[0];

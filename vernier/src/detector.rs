@@ -69,7 +69,12 @@ impl MarkerPose {
     /// units and radians**, estimated from the white-noise level of the phase fit
     /// (docs/design.md#uncertainty). Along the pattern axes the position errors are
     /// `σ_x = P·σ_c1/2π` and `σ_y = P·σ_c2/2π`; the pattern axes are turned by `alpha` in the
-    /// camera frame, so the position block is `Rz(α)·diag(σ_x², σ_y²)·Rz(α)ᵀ`.
+    /// camera frame, so the position block is `Rz(α)·diag(σ_x², σ_y²)·Rz(α)ᵀ`, plus
+    /// `ε²·t·tᵀ` for the marker's own measured scale (relative σ `ε` =
+    /// `pixel_size_std/measured_pixel_size`): the translation `t` is pixels times that scale, so
+    /// its error stretches `t` radially (6e-3 µm for a marker 620 µm from the image centre at
+    /// `ε` = 1e-5, four times its offsets' σ on `Image96`–`Image125`). A calibrated pixel size
+    /// (`pose.pixel_size` other than the measured one) counts as exact.
     /// Yaw from the plane slopes over the analysed `window_px` pixels:
     /// `σ_α = κ·σ_c1/(k·window_px)`, `k` the grid frequency in rad/px, `κ` the slope factor of
     /// the fit (docs/design.md#uncertainty): √12 (periodic grids, HP codes and stamps average
@@ -98,6 +103,19 @@ impl MarkerPose {
         cov[0][0] = c * c * vx + s * s * vy;
         cov[1][1] = s * s * vx + c * c * vy;
         cov[0][1] = c * s * (vx - vy);
+        let own_scale = self.pose.pixel_size == self.measured_pixel_size;
+        if own_scale && self.measured_pixel_size > 0.0 {
+            let e = self.pixel_size_std / self.measured_pixel_size;
+            let t = [
+                c * self.pose.x - s * self.pose.y,
+                s * self.pose.x + c * self.pose.y,
+            ];
+            for (i, ti) in t.iter().enumerate() {
+                for (j, tj) in t.iter().enumerate() {
+                    cov[i][j] += e * e * ti * tj;
+                }
+            }
+        }
         cov[1][0] = cov[0][1];
         cov[2][2] = 1e6;
         cov[3][3] = 1e6;
@@ -839,6 +857,29 @@ mod tests {
             measured_pixel_size: 0.5,
             pixel_size_std: 0.0,
         }
+    }
+
+    /// The measured scale's σ stretches the camera-frame translation radially; a calibrated
+    /// scale adds nothing.
+    #[test]
+    fn the_measured_scale_error_stretches_the_translation() {
+        let mut m = marker(0.3, [1e-3, 1e-3]);
+        m.pose.x = 600.0;
+        m.pose.y = -200.0;
+        let plain = m.covariance(10.0, 256.0);
+        m.pixel_size_std = 0.5 * 1e-5;
+        let with_scale = m.covariance(10.0, 256.0);
+        let t = m.pose.camera_from_pattern().translation.vector;
+        for (i, j) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+            let added = with_scale[i][j] - plain[i][j];
+            assert!(
+                (added - 1e-10 * t[i] * t[j]).abs() < 1e-15,
+                "{i}{j}: {added}"
+            );
+        }
+        assert_eq!(with_scale[5][5], plain[5][5]);
+        m.pose.pixel_size = 0.49; // calibrated
+        assert_eq!(m.covariance(10.0, 256.0)[0][0], plain[0][0]);
     }
 
     /// `pose_3d` on a marker type whose tilt is not measured is refused with the parameter's
