@@ -1,21 +1,35 @@
-//! Handing freed heap memory back to the operating system, so that the node's resident size
-//! follows what it holds over a day-long run.
+//! Keeping the node's resident size on what it holds over a day-long run.
 //!
-//! glibc's allocator keeps what a thread frees in that thread's arena, and raises its mmap
-//! threshold after the first large buffer is freed, so later frame-sized buffers (a 1–5 MB
-//! image message from the DDS receiver, the detector's per-frame vectors) come from the heap
-//! and stay resident once freed. Which arena, and where in it, depends on thread timing: over
-//! a run with mode changes (tracking off and on, a marker lost and found) the resident size
-//! wandered by ±10 % around the same live memory (`test/run_soak.sh`: −4 % and +6 % between
-//! two quiet spans of two runs). `malloc_trim` returns the free pages of every arena. It took
-//! 1.7 ms (median; at most 7 ms) on a 1 MP soak run and holds each arena's lock while it
-//! walks it, so it runs every [`RELEASE_PERIOD`], off the frame path: a frame that allocates
-//! meanwhile waits, once in ten seconds, below the latency's 99th percentile.
+//! glibc's allocator raises its mmap threshold each time a large buffer is freed (up to
+//! 32 MB), so frame-sized buffers (a 1–5 MB image message from the DDS receiver, the
+//! detector's per-frame vectors) soon come from the threads' heap arenas, and what is freed
+//! there stays resident until trimmed, wherever it lies. Which arena, and where in it, depends
+//! on thread timing: over a 2-minute soak run (`test/run_soak.sh`) the resident size rose by
+//! 10–14 MiB between trims and two quiet spans of one run differed by −4 % to +7 % around the
+//! same live memory. So at start the threshold is fixed at [`MMAP_THRESHOLD`] (buffers that
+//! size and larger are mapped for themselves and unmapped when freed), and the arenas' free
+//! pages are handed back every [`RELEASE_PERIOD`] (`malloc_trim`, off the frame path: 1.7 ms
+//! median, at most 7 ms on a 1 MP soak run, holding each arena's lock while it walks it).
 
 use std::time::{Duration, Instant};
 
-/// How often freed memory is handed back.
+/// Allocations of at least this many bytes are mapped apart from the heap (glibc's
+/// `M_MMAP_THRESHOLD`, fixed: its default adapts upwards). A 1 MP 8-bit frame is 1 MiB; the
+/// field fit's per-sweep vectors stay below it.
+pub const MMAP_THRESHOLD: usize = 256 * 1024;
+
+/// How often the arenas' free pages are handed back.
 pub const RELEASE_PERIOD: Duration = Duration::from_secs(10);
+
+/// Fixes the allocator's mmap threshold at [`MMAP_THRESHOLD`] (glibc; nothing elsewhere).
+/// Call once at start, before the threads.
+pub fn configure_allocator() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets the allocator's parameters; called before other threads run.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD as libc::c_int);
+    }
+}
 
 /// Hands freed memory back every [`RELEASE_PERIOD`] ([`MemoryRelease::when_due`]).
 pub struct MemoryRelease {

@@ -143,6 +143,7 @@ fn output_qos(depth: usize) -> QosProfile {
 
 /// Runs the node with the process arguments (without the program name) until killed.
 pub fn run(argv: Vec<String>) -> Result<(), String> {
+    crate::memory::configure_allocator();
     let Some(names) = parse_command_line(argv)? else {
         return Ok(()); // --help
     };
