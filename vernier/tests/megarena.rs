@@ -9,7 +9,7 @@ use std::f64::consts::PI;
 use vernier::detector::{DetectorSettings, MarkerKind};
 use vernier::layout::{raised_cosine, Layout, MegarenaLayout, Metadata, Rect};
 use vernier::megarena::{MegarenaDetection, MegarenaDetector, MegarenaParams};
-use vernier::render::{render, RenderOptions};
+use vernier::render::render;
 use vernier::{Detector, Error, GreyImage, Polarity, Pose};
 
 /// A Megarena layout in which a pseudo-random fraction of the dot sites is inverted (present
@@ -103,19 +103,6 @@ fn random_pose(rng: &mut SmallRng, layout: &MegarenaLayout, size: usize) -> Pose
     Pose::planar(-x, -y, rng.random_range(-PI..PI), pixel_size)
 }
 
-fn options(size: usize, noise: f64, seed: u64) -> RenderOptions {
-    let mut opts = RenderOptions::new(size, size);
-    opts.blur_sigma = 0.5;
-    if noise > 0.0 {
-        opts.noise_std = noise;
-        opts.bit_depth = Some(12);
-        opts.background = 0.05;
-        opts.foreground = 0.95;
-        opts.seed = seed;
-    }
-    opts
-}
-
 /// Renders `cases` random views of the depth-`depth` pattern with `flip_rate` of the dot sites
 /// inverted and decodes them.
 fn run(depth: u32, cases: usize, flip_rate: f64, noise: f64, seed: u64) -> Vec<Case> {
@@ -130,7 +117,12 @@ fn run(depth: u32, cases: usize, flip_rate: f64, noise: f64, seed: u64) -> Vec<C
                 rate: flip_rate,
                 seed: seed * 1000 + i as u64,
             };
-            let image = render(&flipped, &truth, &options(512, noise, i as u64)).unwrap();
+            let image = render(
+                &flipped,
+                &truth,
+                &common::render_options(512, noise, i as u64),
+            )
+            .unwrap();
             let mut detector =
                 MegarenaDetector::new(MegarenaParams::new(period, depth).unwrap()).unwrap();
             Case {
@@ -207,7 +199,7 @@ fn too_few_periods_is_an_error_not_a_guess() {
     // 12-bit code needs 13 coding lines (~39 periods); 256 px at ~10 px/period shows ~25.
     let layout = MegarenaLayout::new(10.0, 12).unwrap();
     let pose = Pose::planar(-50_000.0, -70_000.0, 0.3, 1.0);
-    let image = render(&layout, &pose, &options(256, 0.0, 0)).unwrap();
+    let image = render(&layout, &pose, &common::render_options(256, 0.0, 0)).unwrap();
     let mut detector = MegarenaDetector::new(MegarenaParams::new(10.0, 12).unwrap()).unwrap();
     match detector.detect(&image) {
         Err(Error::Decode(msg)) => assert!(msg.contains("not enough periods to decode"), "{msg}"),
@@ -216,7 +208,7 @@ fn too_few_periods_is_an_error_not_a_guess() {
     // The same view at depth 8 (9 lines needed) decodes.
     let layout8 = MegarenaLayout::new(10.0, 8).unwrap();
     let pose8 = Pose::planar(-4000.0, -3000.0, 0.3, 1.0);
-    let image8 = render(&layout8, &pose8, &options(256, 0.0, 0)).unwrap();
+    let image8 = render(&layout8, &pose8, &common::render_options(256, 0.0, 0)).unwrap();
     let mut detector8 = MegarenaDetector::new(MegarenaParams::new(10.0, 8).unwrap()).unwrap();
     let found = detector8.detect(&image8).unwrap();
     assert!((found.pose.x - pose8.x).abs() < 0.01 && (found.pose.y - pose8.y).abs() < 0.01);
@@ -226,7 +218,7 @@ fn too_few_periods_is_an_error_not_a_guess() {
 fn dark_dots_decode_to_the_same_pose() {
     let layout = MegarenaLayout::new(8.0, 10).unwrap();
     let truth = Pose::planar(-12_345.6, -9_876.5, -2.5, 0.9);
-    let mut opts = options(512, 0.0, 0);
+    let mut opts = common::render_options(512, 0.0, 0);
     opts.background = 0.9;
     opts.foreground = 0.1;
     let image = render(&layout, &truth, &opts).unwrap();
@@ -244,7 +236,7 @@ fn dark_dots_decode_to_the_same_pose() {
 fn settings_from_flags_and_pattern_file() {
     let layout = MegarenaLayout::new(14.0, 12).unwrap();
     let truth = Pose::planar(-60_000.0, -80_000.0, 0.2, 1.6);
-    let image = render(&layout, &truth, &options(512, 0.0, 0)).unwrap();
+    let image = render(&layout, &truth, &common::render_options(512, 0.0, 0)).unwrap();
     // `vernier detect --pattern megarenaPattern.json` (12 bits, P = 14, `codeDepth` key).
     let from_file = DetectorSettings {
         pattern_file: Some(common::data_dir().join("patterns/megarenaPattern.json")),
@@ -290,7 +282,7 @@ fn out_of_plane_candidates_contain_the_truth() {
         let mut truth = random_pose(&mut rng, &layout, 512);
         truth.beta = rng.random_range(0.1..0.5) * if rng.random_bool(0.5) { 1.0 } else { -1.0 };
         truth.gamma = rng.random_range(0.1..0.5) * if rng.random_bool(0.5) { 1.0 } else { -1.0 };
-        let image = render(&layout, &truth, &options(512, 0.0, 0)).unwrap();
+        let image = render(&layout, &truth, &common::render_options(512, 0.0, 0)).unwrap();
         let mut detector = MegarenaDetector::new(MegarenaParams::new(10.0, 8).unwrap()).unwrap();
         let found = detector.detect(&image).unwrap();
         let out = found.out_of_plane(&image, None).unwrap();
@@ -515,16 +507,6 @@ fn detector_3d(period: f64, depth: u32) -> Detector {
     Detector::new(settings.to_config().unwrap()).unwrap()
 }
 
-/// The out-of-plane tilts of the 6-DoF tests: every sign and size combination of
-/// `beta, gamma ∈ {±0.1, ±0.2, ±0.3}` rad.
-fn tilts() -> Vec<(f64, f64)> {
-    let values = [-0.3, -0.2, -0.1, 0.1, 0.2, 0.3];
-    values
-        .iter()
-        .flat_map(|&b| values.iter().map(move |&g| (b, g)))
-        .collect()
-}
-
 #[test]
 fn pose_3d_setting_measures_tilts_of_perspective_renders() {
     // Pinhole renders (focal 8000 px, the pattern ~8800 units away): the perspective cue picks
@@ -535,29 +517,17 @@ fn pose_3d_setting_measures_tilts_of_perspective_renders() {
     let mut detector = detector_3d(10.0, 8);
     let focal = 8000.0;
     let (mut worst, mut weakest_cue) = (0.0f64, f64::INFINITY);
-    for (beta, gamma) in tilts() {
+    for (beta, gamma) in common::tilts() {
         let truth = tilted(beta, gamma);
         let image = common::render_perspective(&layout, &truth, focal, 512);
         let markers = detector.detect(&image).unwrap();
         assert_eq!(markers.len(), 1);
         let m = &markers[0];
-        let error = (m.pose.beta - beta).abs().max((m.pose.gamma - gamma).abs());
-        let cue = m.pose_3d_cue_strength.unwrap();
+        assert_eq!(m.pose.z, 0.0);
+        let cov = m.covariance(10.0, 512.0);
+        let (error, cue) = common::check_perspective_tilt(m, (beta, gamma), 3e-3, &cov);
         worst = worst.max(error);
         weakest_cue = weakest_cue.min(cue);
-        assert!(
-            error < 3e-3,
-            "truth ({beta}, {gamma}), got ({}, {}), cue {cue}",
-            m.pose.beta,
-            m.pose.gamma
-        );
-        assert!(cue > 0.5, "truth ({beta}, {gamma}): cue {cue}");
-        assert_eq!(m.pose.z, 0.0);
-        // 6-DoF covariance: roll = γ, pitch = β get real (small) variances, z stays unknown.
-        let cov = m.covariance(10.0, 512.0);
-        assert!(cov[3][3] > 0.0 && cov[3][3] < 1e-4, "{cov:?}");
-        assert!(cov[4][4] > 0.0 && cov[4][4] < 1e-4, "{cov:?}");
-        assert_eq!(cov[2][2], 1e6);
     }
     eprintln!(
         "perspective renders: worst angle error {worst:.2e} rad, weakest cue {weakest_cue:.3}"
@@ -572,7 +542,7 @@ fn pose_3d_setting_on_orthographic_renders_gives_one_mirror_solution() {
     let layout = MegarenaLayout::new(10.0, 8).unwrap();
     let mut detector = detector_3d(10.0, 8);
     let mut worst = 0.0f64;
-    for (i, (beta, gamma)) in tilts().into_iter().enumerate() {
+    for (i, (beta, gamma)) in common::tilts().into_iter().enumerate() {
         let truth = Pose {
             x: -3100.0 - 10.0 * i as f64,
             y: -4000.0 + 7.0 * i as f64,
@@ -582,7 +552,7 @@ fn pose_3d_setting_on_orthographic_renders_gives_one_mirror_solution() {
             gamma,
             pixel_size: 1.2,
         };
-        let image = render(&layout, &truth, &options(512, 0.0, 0)).unwrap();
+        let image = render(&layout, &truth, &common::render_options(512, 0.0, 0)).unwrap();
         let m = &detector.detect(&image).unwrap()[0];
         let direct = (m.pose.beta - beta).abs().max((m.pose.gamma - gamma).abs());
         let mirror = (m.pose.beta + beta).abs().max((m.pose.gamma + gamma).abs());
@@ -628,36 +598,14 @@ fn pose_3d_covariance_matches_the_spread_over_noisy_renders() {
         pixel_size: 1.2,
     };
     let runs = 16;
-    let spread = |v: &[f64]| {
-        let mean = v.iter().sum::<f64>() / v.len() as f64;
-        (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (v.len() - 1) as f64).sqrt()
-    };
     for (noise, lowest, highest) in [(0.05, 0.7, 1.45), (0.2, 0.6, 1.45)] {
-        let mut samples = vec![Vec::new(); 3]; // beta, gamma, alpha
-        let mut predicted = [0.0f64; 3];
+        let mut spread = common::TiltSpread::default();
         for seed in 0..runs {
-            let image = render(&layout, &truth, &options(512, noise, seed)).unwrap();
+            let image = render(&layout, &truth, &common::render_options(512, noise, seed)).unwrap();
             let m = &detector.detect(&image).unwrap()[0];
-            // Fold both mirror solutions onto the truth's.
-            let sign = if m.pose.beta * truth.beta >= 0.0 {
-                1.0
-            } else {
-                -1.0
-            };
-            samples[0].push(sign * m.pose.beta);
-            samples[1].push(sign * m.pose.gamma);
-            samples[2].push(m.pose.alpha);
-            let cov = m.covariance(10.0, 512.0);
-            // pitch = β, roll = γ, yaw = α.
-            for (k, i) in [4, 3, 5].into_iter().enumerate() {
-                predicted[k] += cov[i][i] / runs as f64;
-            }
+            spread.add(m, truth.beta, &m.covariance(10.0, 512.0));
         }
-        let ratio: Vec<f64> = samples
-            .iter()
-            .zip(predicted)
-            .map(|(v, p)| p.sqrt() / spread(v))
-            .collect();
+        let ratio = spread.ratios();
         eprintln!("noise {noise}: predicted/observed std of (beta, gamma, alpha) {ratio:.2?}");
         for k in 0..2 {
             assert!(
@@ -682,7 +630,7 @@ fn pose_3d_setting_is_off_by_default_and_refused_for_other_types() {
         gamma: -0.3,
         pixel_size: 1.2,
     };
-    let image = render(&layout, &truth, &options(512, 0.0, 0)).unwrap();
+    let image = render(&layout, &truth, &common::render_options(512, 0.0, 0)).unwrap();
     let planar = DetectorSettings {
         pattern_type: MarkerKind::Megarena,
         period: Some(10.0),

@@ -9,7 +9,7 @@ use rand_distr::{Distribution, Normal};
 use vernier::detector::{DetectorSettings, MarkerKind};
 use vernier::layout::PeriodicLayout;
 use vernier::phase::wrap_to_pi;
-use vernier::render::{render, RenderOptions};
+use vernier::render::render;
 use vernier::{Detector, GreyImage, Pose};
 
 /// Physical period of the test grids, pattern units.
@@ -30,30 +30,6 @@ fn detector_3d(field_fit: bool) -> Detector {
 /// A grid much larger than the views (101 × 101 dots, centred on the pattern origin).
 fn layout() -> PeriodicLayout {
     PeriodicLayout::new(PERIOD, 101, 101).unwrap()
-}
-
-/// Render options: blur 0.5 px; with `noise > 0`, Gaussian noise of that fraction of full
-/// scale, 12-bit, grey levels 0.05/0.95.
-fn options(size: usize, noise: f64, seed: u64) -> RenderOptions {
-    let mut opts = RenderOptions::new(size, size);
-    opts.blur_sigma = 0.5;
-    if noise > 0.0 {
-        opts.noise_std = noise;
-        opts.bit_depth = Some(12);
-        opts.background = 0.05;
-        opts.foreground = 0.95;
-        opts.seed = seed;
-    }
-    opts
-}
-
-/// Every sign and size combination of `beta, gamma ∈ {±0.1, ±0.2, ±0.3}` rad.
-fn tilts() -> Vec<(f64, f64)> {
-    let values = [-0.3, -0.2, -0.1, 0.1, 0.2, 0.3];
-    values
-        .iter()
-        .flat_map(|&b| values.iter().map(move |&g| (b, g)))
-        .collect()
 }
 
 /// A tilted view whose truth lies in the reported ranges (`x, y ∈ [−P/2, P/2)`, `alpha` well
@@ -80,9 +56,9 @@ fn orthographic_renders_give_one_mirror_solution() {
     let layout = layout();
     let (mut worst, mut worst_alpha, mut worst_scale, mut worst_px) =
         (0.0f64, 0.0f64, 0.0f64, 0.0f64);
-    for (i, (beta, gamma)) in tilts().into_iter().enumerate() {
+    for (i, (beta, gamma)) in common::tilts().into_iter().enumerate() {
         let truth = tilted(i, beta, gamma);
-        let image = render(&layout, &truth, &options(256, 0.0, 0)).unwrap();
+        let image = render(&layout, &truth, &common::render_options(256, 0.0, 0)).unwrap();
         let m = &detector.detect(&image).unwrap()[0];
         let direct = (m.pose.beta - beta).abs().max((m.pose.gamma - gamma).abs());
         let mirror = (m.pose.beta + beta).abs().max((m.pose.gamma + gamma).abs());
@@ -117,25 +93,14 @@ fn perspective_renders_give_the_right_solution() {
     let layout = layout();
     let focal = 8000.0;
     let (mut worst, mut weakest_cue) = (0.0f64, f64::INFINITY);
-    for (i, (beta, gamma)) in tilts().into_iter().enumerate() {
+    for (i, (beta, gamma)) in common::tilts().into_iter().enumerate() {
         let truth = tilted(i, beta, gamma);
         let image = common::render_perspective(&layout, &truth, focal, 384);
         let m = &detector.detect(&image).unwrap()[0];
-        let error = (m.pose.beta - beta).abs().max((m.pose.gamma - gamma).abs());
-        let cue = m.pose_3d_cue_strength.unwrap();
+        let cov = m.covariance(PERIOD, m.window_px as f64);
+        let (error, cue) = common::check_perspective_tilt(m, (beta, gamma), 1e-3, &cov);
         worst = worst.max(error);
         weakest_cue = weakest_cue.min(cue);
-        assert!(
-            error < 1e-3,
-            "truth ({beta}, {gamma}), got ({}, {}), cue {cue}",
-            m.pose.beta,
-            m.pose.gamma
-        );
-        assert!(cue > 0.5, "truth ({beta}, {gamma}): cue {cue}");
-        let cov = m.covariance(PERIOD, m.window_px as f64);
-        assert!(cov[3][3] > 0.0 && cov[3][3] < 1e-4, "{cov:?}");
-        assert!(cov[4][4] > 0.0 && cov[4][4] < 1e-4, "{cov:?}");
-        assert_eq!(cov[2][2], 1e6);
     }
     eprintln!(
         "periodic perspective renders: worst angle error {worst:.2e} rad, weakest cue \
@@ -172,33 +137,15 @@ fn sigma_ratios(field_fit: bool, noise: f64, runs: u64) -> [f64; 3] {
         gamma: -0.3,
         pixel_size: 1.1,
     };
-    let mut opts = options(256, 0.0, 0);
+    let mut opts = common::render_options(256, 0.0, 0);
     (opts.background, opts.foreground) = (0.05, 0.95);
     let clean = render(&layout(), &truth, &opts).unwrap();
-    let spread = |v: &[f64]| {
-        let mean = v.iter().sum::<f64>() / v.len() as f64;
-        (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (v.len() - 1) as f64).sqrt()
-    };
-    let mut samples = vec![Vec::new(); 3]; // beta, gamma, alpha
-    let mut predicted = [0.0f64; 3];
+    let mut spread = common::TiltSpread::default();
     for seed in 0..runs {
         let m = &detector.detect(&noisy(&clean, noise, seed)).unwrap()[0];
-        // Fold both mirror solutions onto the truth's.
-        let sign = if m.pose.beta * truth.beta >= 0.0 {
-            1.0
-        } else {
-            -1.0
-        };
-        samples[0].push(sign * m.pose.beta);
-        samples[1].push(sign * m.pose.gamma);
-        samples[2].push(m.pose.alpha);
-        let cov = m.covariance(PERIOD, m.window_px as f64);
-        // pitch = β, roll = γ, yaw = α.
-        for (k, i) in [4, 3, 5].into_iter().enumerate() {
-            predicted[k] += cov[i][i] / runs as f64;
-        }
+        spread.add(m, truth.beta, &m.covariance(PERIOD, m.window_px as f64));
     }
-    [0, 1, 2].map(|k| predicted[k].sqrt() / spread(&samples[k]))
+    spread.ratios()
 }
 
 #[test]

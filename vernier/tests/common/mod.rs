@@ -435,3 +435,90 @@ pub fn render_perspective(layout: &dyn Layout, pose: &Pose, focal: f64, size: us
     }
     GreyImage::new(size, size, pixels).unwrap()
 }
+
+/// Render options of the synthetic-view tests: blur 0.5 px; with `noise > 0`, Gaussian noise
+/// of that fraction of full scale, 12-bit, grey levels 0.05/0.95, seeded.
+pub fn render_options(size: usize, noise: f64, seed: u64) -> vernier::render::RenderOptions {
+    let mut opts = vernier::render::RenderOptions::new(size, size);
+    opts.blur_sigma = 0.5;
+    if noise > 0.0 {
+        opts.noise_std = noise;
+        opts.bit_depth = Some(12);
+        opts.background = 0.05;
+        opts.foreground = 0.95;
+        opts.seed = seed;
+    }
+    opts
+}
+
+/// The out-of-plane tilts of the 6-DoF tests: every sign and size combination of
+/// `beta, gamma ∈ {±0.1, ±0.2, ±0.3}` rad.
+pub fn tilts() -> Vec<(f64, f64)> {
+    let values = [-0.3, -0.2, -0.1, 0.1, 0.2, 0.3];
+    values
+        .iter()
+        .flat_map(|&b| values.iter().map(move |&g| (b, g)))
+        .collect()
+}
+
+/// Checks marker `m` of a perspective render tilted by `(beta, gamma)` rad with the
+/// out-of-plane pose on: both angles within `tolerance` rad, a perspective cue above 0.5, and
+/// in its covariance `cov` real (small) roll and pitch variances and an unobserved `z`.
+/// Returns the larger angle error and the cue strength.
+pub fn check_perspective_tilt(
+    m: &vernier::MarkerPose,
+    (beta, gamma): (f64, f64),
+    tolerance: f64,
+    cov: &[[f64; 6]; 6],
+) -> (f64, f64) {
+    let error = (m.pose.beta - beta).abs().max((m.pose.gamma - gamma).abs());
+    let cue = m.pose_3d_cue_strength.unwrap_or(0.0);
+    assert!(
+        error < tolerance,
+        "truth ({beta}, {gamma}), got ({}, {}), cue {cue}",
+        m.pose.beta,
+        m.pose.gamma
+    );
+    assert!(cue > 0.5, "truth ({beta}, {gamma}): cue {cue}");
+    // roll = γ, pitch = β get real variances; z stays unknown.
+    assert!(cov[3][3] > 0.0 && cov[3][3] < 1e-4, "{cov:?}");
+    assert!(cov[4][4] > 0.0 && cov[4][4] < 1e-4, "{cov:?}");
+    assert_eq!(cov[2][2], 1e6);
+    (error, cue)
+}
+
+/// Predicted against observed σ of `(beta, gamma, alpha)` over noise draws of one tilted view
+/// ([`TiltSpread::add`] each draw's marker, then [`TiltSpread::ratios`]).
+#[derive(Default)]
+pub struct TiltSpread {
+    samples: [Vec<f64>; 3],
+    variance_sum: [f64; 3],
+}
+
+impl TiltSpread {
+    /// Adds one draw's marker `m` (both mirror solutions folded onto the truth's, whose beta
+    /// is `truth_beta`) and its covariance `cov` (pitch = β, roll = γ, yaw = α).
+    pub fn add(&mut self, m: &vernier::MarkerPose, truth_beta: f64, cov: &[[f64; 6]; 6]) {
+        let sign = if m.pose.beta * truth_beta >= 0.0 {
+            1.0
+        } else {
+            -1.0
+        };
+        let values = [sign * m.pose.beta, sign * m.pose.gamma, m.pose.alpha];
+        for (k, (i, v)) in [4, 3, 5].into_iter().zip(values).enumerate() {
+            self.samples[k].push(v);
+            self.variance_sum[k] += cov[i][i];
+        }
+    }
+
+    /// Each angle's RMS predicted σ over its sample standard deviation.
+    pub fn ratios(&self) -> [f64; 3] {
+        [0, 1, 2].map(|k| {
+            let v = &self.samples[k];
+            let n = v.len() as f64;
+            let mean = v.iter().sum::<f64>() / n;
+            let spread = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+            (self.variance_sum[k] / n).sqrt() / spread
+        })
+    }
+}
