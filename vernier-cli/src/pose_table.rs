@@ -185,10 +185,10 @@ impl PoseRow {
 }
 
 /// The σ of a marker's printed `x`, `y` (pattern units) and `alpha` (rad). `x`, `y` are the
-/// pattern-frame coordinates of the pattern origin seen from the image centre,
-/// `Rz(−α)·t/s` for the camera-frame translation `t` (pixels) and the scale `s`, so besides
-/// the phase offsets' σ along the pattern axes (`P·σ_c/2π`, [`MarkerPose::covariance`]) an
-/// orientation error `δα` turns them by `(y·δα, −x·δα)` and a relative scale error `ε`
+/// pattern-frame coordinates of the pattern origin seen from the image centre, `s·Rz(−α)·t`
+/// for the camera-frame translation `t` (pixels) and the scale `s` (pattern units per pixel),
+/// so besides the phase offsets' σ along the pattern axes (`P·σ_c/2π`,
+/// [`MarkerPose::covariance`]) an orientation error `δα` turns them by `(y·δα, −x·δα)` and a relative scale error `ε`
 /// stretches them by `(x·ε, y·ε)` (the marker's measured scale, `pixel_size_std`; a
 /// calibrated `--pixel-size` counts as exact). Slope noise moves a phase gradient's direction
 /// and length independently, so the three add in quadrature. A marker 620 µm from the image
