@@ -249,6 +249,21 @@ fn draw(
 /// A plot panel of the bitmap.
 type Panel<'a> = DrawingArea<BitMapBackend<'a>, plotters::coord::Shift>;
 
+/// A chart of `area` with `caption` above it and room for the axis labels: the frame both
+/// columns of the plot share.
+fn chart_builder<'a, 'b>(
+    area: &'a Panel<'b>,
+    caption: &str,
+) -> ChartBuilder<'a, 'static, BitMapBackend<'b>> {
+    let mut builder = ChartBuilder::on(area);
+    builder
+        .caption(caption, ("sans-serif", 18))
+        .margin(8)
+        .x_label_area_size(30)
+        .y_label_area_size(70);
+    builder
+}
+
 /// Quantity `q` of each series minus its mean against time, in `area`.
 fn draw_time_series(area: &Panel, all: &[Series], q: &Quantity, time_unit: &str) -> DrawResult {
     let mut lines = Vec::new();
@@ -273,14 +288,7 @@ fn draw_time_series(area: &Panel, all: &[Series], q: &Quantity, time_unit: &str)
         lines.push((s.id, centred));
     }
     let pad = ((v_max - v_min) * 0.05).max(1e-12);
-    let mut chart = ChartBuilder::on(area)
-        .caption(
-            format!("{} − mean ({})", q.name, q.unit),
-            ("sans-serif", 18),
-        )
-        .margin(8)
-        .x_label_area_size(30)
-        .y_label_area_size(70)
+    let mut chart = chart_builder(area, &format!("{} − mean ({})", q.name, q.unit))
         .build_cartesian_2d(0.0..t_max.max(1e-9), (v_min - pad)..(v_max + pad))?;
     chart
         .configure_mesh()
@@ -354,14 +362,7 @@ fn draw_allan_deviation(
         (centre / half, centre * half)
     };
     let ((t_lo, t_hi), (d_lo, d_hi)) = (widen(t_lo, t_hi), widen(d_lo, d_hi));
-    let mut chart = ChartBuilder::on(area)
-        .caption(
-            format!("Allan deviation of {} ({})", q.name, q.unit),
-            ("sans-serif", 18),
-        )
-        .margin(8)
-        .x_label_area_size(30)
-        .y_label_area_size(70)
+    let mut chart = chart_builder(area, &format!("Allan deviation of {} ({})", q.name, q.unit))
         .build_cartesian_2d((t_lo..t_hi).log_scale(), (d_lo..d_hi).log_scale())?;
     chart
         .configure_mesh()

@@ -158,10 +158,8 @@ impl Subject {
         }
     }
 
-    /// Each series' samples of the subject over the keys where every series has it, in the
-    /// first series' frame order.
-    fn samples(self, series: &[BTreeMap<u64, Poses>]) -> Vec<Samples> {
-        let keys = self.keys(series);
+    /// Each series' samples of the subject at `keys` ([`Subject::keys`]).
+    fn samples(self, series: &[BTreeMap<u64, Poses>], keys: &[Key]) -> Vec<Samples> {
         series
             .iter()
             .map(|m| {
@@ -174,10 +172,10 @@ impl Subject {
             .collect()
     }
 
-    /// Each series' median predicted σ of `(x, y, α)` over the subject's frames: a marker's
-    /// own (NaN where its table has none); NaN for a pair, whose σ the tables do not give.
-    fn predicted(self, series: &[BTreeMap<u64, Poses>]) -> Vec<[f64; 3]> {
-        let keys = self.keys(series);
+    /// Each series' median predicted σ of `(x, y, α)` at `keys` ([`Subject::keys`]): a
+    /// marker's own (NaN where its table has none); NaN for a pair, whose σ the tables do not
+    /// give.
+    fn predicted(self, series: &[BTreeMap<u64, Poses>], keys: &[Key]) -> Vec<[f64; 3]> {
         series
             .iter()
             .map(|m| match self {
@@ -435,7 +433,8 @@ pub fn run(
 
 /// Prints the tables of one subject, one per quantity.
 fn print_subject(subject: Subject, series: &[BTreeMap<u64, Poses>], inputs: &[Input]) {
-    let samples = subject.samples(series);
+    let keys = subject.keys(series);
+    let samples = subject.samples(series, &keys);
     let labels: Vec<char> = inputs.iter().map(|i| i.label).collect();
     let name = subject.name();
     if samples.first().map_or(0, |s| s.x.len()) < 3 {
@@ -455,7 +454,7 @@ fn print_subject(subject: Subject, series: &[BTreeMap<u64, Poses>], inputs: &[In
         ),
         ("alpha (µrad)", alpha.iter().map(Vec::as_slice).collect()),
     ];
-    let predicted = subject.predicted(series);
+    let predicted = subject.predicted(series, &keys);
     for (q, (quantity, values)) in quantities.into_iter().enumerate() {
         // Alpha is printed in µrad.
         let unit = if q == 2 { 1e6 } else { 1.0 };
