@@ -185,28 +185,24 @@ impl PoseRow {
 }
 
 /// The σ of a marker's printed `x`, `y` (pattern units) and `alpha` (rad). `x`, `y` are the
-/// pattern-frame coordinates of the pattern origin seen from the image centre, `s·Rz(−α)·t`
-/// for the camera-frame translation `t` (pixels) and the scale `s` (pattern units per pixel),
-/// so besides the phase offsets' σ along the pattern axes (`P·σ_c/2π`,
-/// [`MarkerPose::covariance`]) an orientation error `δα` turns them by `(y·δα, −x·δα)` and a relative scale error `ε`
-/// stretches them by `(x·ε, y·ε)` (the marker's measured scale, `pixel_size_std`; a
-/// calibrated `--pixel-size` counts as exact). Slope noise moves a phase gradient's direction
-/// and length independently, so the three add in quadrature. A marker 620 µm from the image
-/// centre with `σ_α` = 10 µrad and `ε` = 1e-5 gets 6e-3 µm from each, four times its offsets'
-/// 1.5e-3 µm (`Image96`–`Image125`).
+/// pattern-frame coordinates `p = Rz(−α)·t` of the camera-frame translation `t` of
+/// [`MarkerPose::covariance`], whose block turned back to the pattern axes holds the phase
+/// offsets' σ and the measured scale's; an orientation error `δα` also turns `p` by
+/// `(y·δα, −x·δα)`, independently (slope noise moves a phase gradient's direction and length
+/// apart). A marker 620 µm from the image centre with `σ_α` = 10 µrad and a relative scale σ
+/// of 1e-5 gets 6e-3 µm from each, four times its offsets' 1.5e-3 µm (`Image96`–`Image125`).
 pub fn predicted_std(m: &MarkerPose, period: f64) -> [f64; 3] {
     let cov = m.covariance(period, m.window_px as f64);
     let alpha = cov[5][5].sqrt();
-    let scale = if m.pose.pixel_size == m.measured_pixel_size && m.measured_pixel_size > 0.0 {
-        m.pixel_size_std / m.measured_pixel_size
-    } else {
-        0.0
+    let (s, c) = m.pose.alpha.sin_cos();
+    // uᵀ·Σ·u for the pattern axis u (camera frame) of the position block Σ.
+    let along = |u: [f64; 2]| {
+        u[0] * u[0] * cov[0][0] + 2.0 * u[0] * u[1] * cov[0][1] + u[1] * u[1] * cov[1][1]
     };
-    let along = m.phase_std.map(|s| period * s / std::f64::consts::TAU);
     let (x, y) = (m.pose.x, m.pose.y);
     [
-        along[0].hypot(alpha * y).hypot(scale * x),
-        along[1].hypot(alpha * x).hypot(scale * y),
+        (along([c, s]) + (alpha * y).powi(2)).sqrt(),
+        (along([-s, c]) + (alpha * x).powi(2)).sqrt(),
         alpha,
     ]
 }
