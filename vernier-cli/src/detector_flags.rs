@@ -43,13 +43,18 @@ pub struct DetectorFlags {
     #[arg(long)]
     pub bitmap: Vec<PathBuf>,
     /// Also measure the out-of-plane angles `beta` (about the pattern's y axis) and `gamma`
-    /// (about its x axis), radians: 6-DoF pose, orthographic model, `z` stays 0. Megarena
-    /// patterns and periodic grids (an error for HP codes and stamps). Of the two mirror
-    /// solutions `(beta, gamma)` and
-    /// `(-beta, -gamma)` the perspective cue's choice is printed, its strength (0-1) in the
-    /// JSON as `pose_3d_cue_strength`.
+    /// (about its x axis), radians: 6-DoF pose, every marker type (HP codes and stamps from
+    /// their whole-field fit). Orthographic model (`z` stays 0) unless --focal-length-px is
+    /// given. Of the two mirror solutions `(beta, gamma)` and `(-beta, -gamma)` the
+    /// perspective cue's choice is printed, its strength (0-1) in the JSON as
+    /// `pose_3d_cue_strength`.
     #[arg(long = "pose-3d")]
     pub pose_3d: bool,
+    /// With --pose-3d: the camera's focal length in pixels (fx of its calibration, principal
+    /// point at the image centre). Each marker's depth `z` is then measured (pattern units),
+    /// and the angles of markers off the optical axis are solved in perspective.
+    #[arg(long = "focal-length-px", requires = "pose_3d")]
+    pub focal_length_px: Option<f64>,
     /// HP codes and stamps: keep the analysis window's planes instead of refining each marker
     /// on its whole dot field (docs/design.md#field-fit): faster, less precise.
     #[arg(long = "no-field-fit", conflicts_with = "field_fit")]
@@ -116,6 +121,7 @@ impl DetectorFlags {
                 _ => None,
             },
             pixel_size: self.pixel_size,
+            focal_length_px: self.focal_length_px,
         }
     }
 

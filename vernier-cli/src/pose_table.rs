@@ -77,6 +77,17 @@ pub struct PoseRow {
     /// See [`PoseRow::x_std`].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub alpha_std: Option<f64>,
+    /// Predicted standard deviations of `beta`, `gamma` (rad) and of the marker origin's
+    /// depth (the camera-frame translation's z, pattern units; with `--focal-length-px`),
+    /// for poses with out-of-plane angles ([`tilt_std`]); JSON and JSON Lines only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub beta_std: Option<f64>,
+    /// See [`PoseRow::beta_std`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gamma_std: Option<f64>,
+    /// See [`PoseRow::beta_std`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub z_std: Option<f64>,
 }
 
 /// Column names, in order.
@@ -126,6 +137,7 @@ impl PoseRow {
                     let p = &m.pose;
                     let [x_std, y_std, alpha_std] =
                         predicted_std(m, period).map(|s| Some(s).filter(|s| s.is_finite()));
+                    let [beta_std, gamma_std, z_std] = tilt_std(m, period);
                     PoseRow {
                         id: Some(m.id),
                         x: Some(p.x),
@@ -146,6 +158,9 @@ impl PoseRow {
                         x_std,
                         y_std,
                         alpha_std,
+                        beta_std,
+                        gamma_std,
+                        z_std,
                         ..base.clone()
                     }
                 })
@@ -204,6 +219,22 @@ pub fn predicted_std(m: &MarkerPose, period: f64) -> [f64; 3] {
         (along([c, s]) + (alpha * y).powi(2)).sqrt(),
         (along([-s, c]) + (alpha * x).powi(2)).sqrt(),
         alpha,
+    ]
+}
+
+/// Predicted standard deviations of `beta`, `gamma` (rad) and of the marker origin's depth
+/// (pattern units) from [`MarkerPose::covariance`]'s pitch, roll and translation-z entries:
+/// `None` for planar poses and for a depth the model leaves unobserved (no focal length).
+pub fn tilt_std(m: &MarkerPose, period: f64) -> [Option<f64>; 3] {
+    if m.pose_3d_cue_strength.is_none() {
+        return [None; 3];
+    }
+    let cov = m.covariance(period, m.window_px as f64);
+    let observed = |v: f64| (v.is_finite() && v < 1e6).then(|| v.max(0.0).sqrt());
+    [
+        observed(cov[4][4]),
+        observed(cov[3][3]),
+        observed(cov[2][2]),
     ]
 }
 
@@ -293,6 +324,9 @@ impl<W: Write> TableWriter<W> {
                     ("x_std", r.x_std),
                     ("y_std", r.y_std),
                     ("alpha_std", r.alpha_std),
+                    ("beta_std", r.beta_std),
+                    ("gamma_std", r.gamma_std),
+                    ("z_std", r.z_std),
                 ] {
                     if let Some(std) = std {
                         m[key] = serde_json::json!(std);
@@ -485,6 +519,7 @@ mod tests {
             measured_pixel_size: 0.5,
             pixel_size_std: 1e-6,
             slope_std: None,
+            tilt_covariance: None,
         };
         let rows = PoseRow::from_result(0, None, "a.png", &Ok(vec![marker]), 1.0, period);
         let row = &rows[0];

@@ -261,7 +261,7 @@ fn detect_pose_3d_on_a_periodic_grid() {
     use vernier::layout::PeriodicLayout;
     use vernier::render::{render, RenderOptions};
     // A periodic grid (P = 10) tilted by beta = 0.2, gamma = 0.1 rad, orthographic render: one
-    // of the two mirror solutions, magnitudes exact; an HP code refuses the flag.
+    // of the two mirror solutions, magnitudes exact.
     let dir = scratch("pose3d_periodic");
     let image = dir.join("tilted.png");
     let truth = vernier::Pose {
@@ -309,22 +309,88 @@ fn detect_pose_3d_on_a_periodic_grid() {
     );
     assert!(beta * gamma > 0.0, "{line}");
     assert!(marker["pose_3d_cue_strength"].as_f64().is_some(), "{line}");
+}
+
+#[test]
+fn detect_pose_3d_on_an_hp_code_with_and_without_a_focal_length() {
+    use vernier::layout::HpCodeLayout;
+    use vernier::render::{render, RenderOptions};
+    // An HP code (P = 10, W = 33) tilted by beta = 0.2, gamma = -0.25 rad at the image centre,
+    // orthographic render: the angles and their σ; with a focal length, z = pixel size × focal
+    // (the tangent map at the optical axis is the same) and its σ.
+    let dir = scratch("pose3d_hpcode");
+    let image = dir.join("tilted.png");
+    let truth = vernier::Pose {
+        x: 0.0,
+        y: 0.0,
+        z: 0.0,
+        alpha: 0.4,
+        beta: 0.2,
+        gamma: -0.25,
+        pixel_size: 0.9,
+    };
+    let options = RenderOptions {
+        blur_sigma: 0.5,
+        bit_depth: Some(16),
+        ..RenderOptions::new(320, 320)
+    };
+    let layout = HpCodeLayout::from_code_size(10.0, 33)
+        .unwrap()
+        .with_id(5)
+        .unwrap();
+    render(&layout, &truth, &options)
+        .unwrap()
+        .save_png(&image, 16)
+        .unwrap();
+    let detect = |extra: &[&str]| {
+        let out = vernier()
+            .args(["detect", "--hpcode", "--period", "10", "--code-size", "33"])
+            .args(extra)
+            .arg(&image)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let line = String::from_utf8_lossy(&out.stdout).to_string();
+        let json: serde_json::Value = serde_json::from_str(line.trim()).unwrap();
+        (json["markers"][0].clone(), line)
+    };
+    let (marker, line) = detect(&["--pose-3d"]);
+    let (beta, gamma) = (
+        marker["beta"].as_f64().unwrap(),
+        marker["gamma"].as_f64().unwrap(),
+    );
+    assert!(
+        (beta.abs() - 0.2).abs() < 1e-3 && (gamma.abs() - 0.25).abs() < 1e-3,
+        "{line}"
+    );
+    assert!(beta * gamma < 0.0, "{line}");
+    for key in ["beta_std", "gamma_std", "pose_3d_cue_strength"] {
+        assert!(marker[key].as_f64().is_some(), "{key}: {line}");
+    }
+    assert!(
+        marker.get("z_std").is_none(),
+        "no focal length, no depth: {line}"
+    );
+    assert_eq!(marker["z"].as_f64(), Some(0.0), "{line}");
+    let (marker, line) = detect(&["--pose-3d", "--focal-length-px", "8000"]);
+    let z = marker["z"].as_f64().unwrap();
+    assert!((z / (0.9 * 8000.0) - 1.0).abs() < 1e-3, "{line}");
+    let z_std = marker["z_std"].as_f64().unwrap();
+    assert!(z_std > 0.0 && z_std < 1.0, "{line}");
+    // A focal length is for the out-of-plane pose only.
     let refused = vernier()
-        .args([
-            "detect",
-            "--hpcode",
-            "--period",
-            "10",
-            "--code-size",
-            "33",
-            "--pose-3d",
-        ])
+        .args(["detect", "--hpcode", "--period", "10", "--code-size", "33"])
+        .args(["--focal-length-px", "8000"])
         .arg(&image)
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&refused.stderr);
     assert!(
-        !refused.status.success() && stderr.contains("pose_3d"),
+        !refused.status.success() && stderr.contains("pose-3d"),
         "{stderr}"
     );
 }

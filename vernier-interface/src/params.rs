@@ -227,6 +227,9 @@ pub const QOS_OVERRIDES_PREFIX: &str = "qos_overrides.";
 /// Smallest calibrated `pixel_size` the node takes, metres per pixel (1 pm: far below any
 /// optical microscope's).
 const MIN_PIXEL_SIZE_M: f64 = 1e-12;
+/// Largest `focal_length_px` the node takes, pixels (a 10⁷-pixel focal length is
+/// orthographic for any sensor).
+const MAX_FOCAL_LENGTH_PX: f64 = 1e7;
 /// Largest calibrated `pixel_size` the node takes, metres per pixel (10 cm).
 const MAX_PIXEL_SIZE_M: f64 = 0.1;
 
@@ -397,9 +400,24 @@ pub fn specs() -> Vec<ParamSpec> {
             "pose_3d",
             V::Boolean(false),
             "Also measure the out-of-plane angles (pitch, roll) from the phase planes, with \
-             their covariance (Megarena patterns and periodic grids: with an HP code or stamp \
-             the detector is refused with the reason, never silently planar).",
+             their covariance, for every marker type (HP codes and stamps from their whole-field \
+             fit; docs/design.md#pose-3d-markers). The mirror solution is chosen by the \
+             perspective cue (pose_3d_cue_strength); a marker with no 3-D solution is published \
+             planar and the reason logged.",
         ),
+        ParamSpec {
+            unit: "px",
+            range: range(1.0, MAX_FOCAL_LENGTH_PX, true),
+            ..spec(
+                "focal_length_px",
+                V::Double(0.0),
+                "Focal length of a perspective camera, pixels (fx of its calibration, principal \
+                 point at the image centre), used with pose_3d: each marker's depth z is \
+                 published with its variance, and the angles of markers off the optical axis \
+                 are solved in perspective. 0 = orthographic optics (a microscope): z \
+                 unobserved.",
+            )
+        },
         spec(
             "field_fit",
             V::Boolean(true),
@@ -811,12 +829,22 @@ impl PatternValues {
         })
     }
 
-    /// The detector settings, reading the last two flags (`pose_3d`, `field_fit`).
+    /// The detector settings, reading `pose_3d`, `focal_length_px` and `field_fit`.
     fn settings(
         &self,
         read: &ValueReader,
         pixel_size: Option<f64>,
     ) -> Result<DetectorSettings, String> {
+        let pose_3d = read.flag("pose_3d")?;
+        let focal_length_px = match read.double("focal_length_px")? {
+            0.0 => None,
+            v if (1.0..=MAX_FOCAL_LENGTH_PX).contains(&v) => Some(v),
+            v => {
+                return Err(format!(
+                    "`focal_length_px` must be 0 (orthographic) or in 1..={MAX_FOCAL_LENGTH_PX:e} px, got {v}"
+                ))
+            }
+        };
         Ok(DetectorSettings {
             pattern_type: self.pattern_type,
             pattern_file: (!self.pattern_file.is_empty())
@@ -827,7 +855,9 @@ impl PatternValues {
             window_size: self.window_size.map(|v| v as usize),
             polarity: self.polarity,
             bitmaps: self.bitmaps.iter().map(PathBuf::from).collect(),
-            pose_3d: read.flag("pose_3d")?,
+            pose_3d,
+            // Kept while pose_3d is off (a parameter set before the other), used with it.
+            focal_length_px: focal_length_px.filter(|_| pose_3d),
             // true: each type's default (periodic grids keep the engine's planes: their
             // whole-image fit costs ~100× the engine); false: window planes for every type.
             field_fit: (!read.flag("field_fit")?).then_some(false),

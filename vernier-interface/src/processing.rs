@@ -289,6 +289,7 @@ fn push_marker(
     // The same marker in SI units: its covariance then comes out in m² directly.
     let si = MarkerPose {
         pose: m.pose.scaled(scale),
+        tilt_covariance: m.tilt_covariance.map(|t| t.scaled(scale)),
         ..m.clone()
     };
     let camera_from_marker = si.pose.camera_from_pattern();
@@ -770,6 +771,64 @@ mod tests {
     }
 
     #[test]
+    fn pose_3d_of_an_hp_code_publishes_its_depth_from_the_focal_length() {
+        // An HP code tilted by (0.2, -0.25) rad at the image centre: with `focal_length_px`,
+        // the published translation's z is pixel size × focal (metres) with a real variance;
+        // roll and pitch are measured. Without it, z stays unobserved.
+        let layout = vernier::layout::HpCodeLayout::from_code_size(10.0, 33)
+            .and_then(|l| l.with_id(3))
+            .unwrap_or_else(|e| panic!("{e}"));
+        let truth = vernier::Pose {
+            alpha: 0.4,
+            beta: 0.2,
+            gamma: -0.25,
+            ..vernier::Pose::planar(0.0, 0.0, 0.0, 0.9)
+        };
+        let options = RenderOptions {
+            blur_sigma: 0.5,
+            ..RenderOptions::new(320, 320)
+        };
+        let image = render(&layout, &truth, &options).unwrap_or_else(|e| panic!("{e}"));
+        let data = image
+            .pixels()
+            .iter()
+            .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+            .collect();
+        let frame = mono8(320, 320, data);
+        let hp = |focal: f64| {
+            params(&[
+                ("pattern_type", ParamValue::String("hpcode".into())),
+                ("period", ParamValue::Double(10.0)),
+                ("code_size", ParamValue::Integer(33)),
+                ("pose_3d", ParamValue::Boolean(true)),
+                ("focal_length_px", ParamValue::Double(focal)),
+            ])
+        };
+        let mut with_focal = Processor::new(hp(8000.0), 0).unwrap_or_else(|e| panic!("{e}"));
+        let out = with_focal.process(&frame).unwrap_or_else(|e| panic!("{e}"));
+        let m = &out.markers.markers[0];
+        let depth = 0.9 * 8000.0 * 1e-6;
+        assert!(
+            (m.pose.position.z / depth - 1.0).abs() < 1e-3,
+            "{:?}",
+            m.pose
+        );
+        let cov = m.covariance.0;
+        assert!(cov[14] > 0.0 && cov[14] < 1e-12, "z variance {}", cov[14]);
+        assert!(cov[21] > 0.0 && cov[21] < 1e-4, "roll variance {}", cov[21]);
+        assert!(
+            cov[28] > 0.0 && cov[28] < 1e-4,
+            "pitch variance {}",
+            cov[28]
+        );
+        let mut orthographic = Processor::new(hp(0.0), 0).unwrap_or_else(|e| panic!("{e}"));
+        let out = orthographic
+            .process(&frame)
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(out.markers.markers[0].covariance.0[14], 1e6, "z unobserved");
+    }
+
+    #[test]
     fn parameter_updates_apply_to_the_next_frame() {
         let p = params(&[("period", ParamValue::Double(8.0))]);
         let mut processor = Processor::new(p.clone(), 0).unwrap_or_else(|e| panic!("{e}"));
@@ -886,6 +945,7 @@ mod tests {
             slope_std: None,
             measured_pixel_size: pose.pixel_size,
             pixel_size_std: 0.0,
+            tilt_covariance: None,
         };
         let a = vernier::Pose::planar(10.0, 20.0, 0.5, 1.0);
         let b = vernier::Pose::from_origin_in_image(

@@ -6,6 +6,7 @@
 use crate::error::{Error, Result};
 use crate::grey_image::GreyImage;
 use crate::hpcode::{HpCodeDetector, HpCodeMarker, HpCodeParams};
+use crate::marker_tilt::{MarkerTilt, TiltCovariance};
 use crate::megarena::{MegarenaDetection, MegarenaDetector, MegarenaParams};
 use crate::megarena_sequence::LineSequence;
 use crate::pattern_file::Pattern;
@@ -61,6 +62,11 @@ pub struct MarkerPose {
     /// the same relative amount as its direction, so `σ_s/s = σ_yaw` of
     /// [`MarkerPose::covariance`].
     pub pixel_size_std: f64,
+    /// The out-of-plane pose's own covariance where the marker type measures it with the
+    /// angles (HP codes and stamps, [`crate::marker_tilt`]): [`MarkerPose::covariance`] takes
+    /// its roll, pitch, yaw and depth from here. `None` for planar poses, periodic grids and
+    /// Megarena patterns (their slope model, [`MarkerPose::slope_std`]).
+    pub tilt_covariance: Option<TiltCovariance>,
 }
 
 impl MarkerPose {
@@ -134,7 +140,18 @@ impl MarkerPose {
             f64::INFINITY
         };
         cov[5][5] = s_alpha * s_alpha;
-        if self.pose_3d_cue_strength.is_some() {
+        if let Some(tilt) = &self.tilt_covariance {
+            // (β, γ, α) → (pitch, roll, yaw) = indices (4, 3, 5).
+            let index = [4, 3, 5];
+            for (i, &a) in index.iter().enumerate() {
+                for (j, &b) in index.iter().enumerate() {
+                    cov[a][b] = tilt.angles[i][j];
+                }
+            }
+            if let Some(depth) = tilt.depth_std {
+                cov[2][2] = depth * depth;
+            }
+        } else if self.pose_3d_cue_strength.is_some() {
             // Slope of a plane fitted over an L-pixel window from offset noise σ_c:
             // σ_slope = σ_c·√12/L (the yaw's model), for ∂φ/∂col and ∂φ/∂row of each plane,
             // unless the fit states its own.
@@ -159,6 +176,12 @@ impl MarkerPose {
                 f64::INFINITY
             };
             cov[5][5] = s_alpha * s_alpha;
+            // With a focal length, z = pixel_size·f of the point on the optical axis: the
+            // measured scale's relative error.
+            if self.pose.z > 0.0 && own_scale && self.measured_pixel_size > 0.0 {
+                let e = self.pixel_size_std / self.measured_pixel_size;
+                cov[2][2] = (self.pose.z * e).powi(2);
+            }
         }
         cov
     }
@@ -220,22 +243,22 @@ pub struct DetectorSettings {
     /// Measure the out-of-plane angles too (6-DoF pose, docs/design.md#pose-3d). Default
     /// `false`: planar poses, `beta = gamma = 0`.
     ///
-    /// Measured for Megarena patterns and periodic grids (their two phase planes fix the
-    /// affine map pattern → image; a periodic grid's axes are labelled by its planar `alpha`,
-    /// docs/design.md#pose-3d); for HP codes and stamps it is refused
-    /// ([`DetectorSettings::to_config`] errs on parameter `pose_3d`), never silently planar.
-    /// When set, each [`MarkerPose::pose`] is the orthographic out-of-plane solution:
-    /// `beta` (about the pattern's intrinsic y axis) and `gamma` (about its intrinsic x axis),
-    /// radians, in the frames of [`crate::pose`] (`cTp = Rz(α)·Ry(β)·Rx(γ)·Trans(x, y, 0)`,
-    /// camera x right, y down, z into the scene); `alpha` and `pixel_size` are then those of
-    /// the same 3-D solution (they differ from the planar ones by terms of order `β·γ`), `x`,
-    /// `y` those of the same pattern point at the image centre (a periodic grid: relative to
-    /// the same node, through the 3-D solution's affine map) and `z` stays 0 (no focal length:
-    /// the depth is unobserved). Of the two
-    /// mirror solutions `(β, γ)` and `(−β, −γ)`, which no orthographic image tells apart, the
-    /// one the perspective cue favours is reported, its strength in
-    /// [`MarkerPose::pose_3d_cue_strength`]; [`MarkerPose::covariance`] then gives roll and
-    /// pitch real variances.
+    /// Measured for every marker type from its two phase planes, which fix the affine map
+    /// pattern → image: Megarena patterns and periodic grids over the whole image (a periodic
+    /// grid's axes labelled by its planar `alpha`), HP codes and stamps from their whole-field
+    /// fit at the marker's origin (their window's planes without one,
+    /// docs/design.md#pose-3d-markers). When set, each [`MarkerPose::pose`] is the
+    /// out-of-plane solution: `beta` (about the pattern's intrinsic y axis) and `gamma` (about
+    /// its intrinsic x axis), radians, in the frames of [`crate::pose`]
+    /// (`cTp = Rz(α)·Ry(β)·Rx(γ)·Trans(x, y, 0)`, camera x right, y down, z into the scene);
+    /// `alpha` and `pixel_size` are then those of the same 3-D solution (they differ from the
+    /// planar ones by terms of order `β·γ`), `x`, `y` those of the pattern point on the optical
+    /// axis, and `z` its depth with [`DetectorSettings::focal_length_px`] (0 without: the depth
+    /// is unobserved). Of the two mirror solutions `(β, γ)` and `(−β, −γ)`, which no
+    /// orthographic image tells apart, the one the perspective cue favours is reported, its
+    /// strength in [`MarkerPose::pose_3d_cue_strength`]; [`MarkerPose::covariance`] then gives
+    /// roll and pitch real variances. A marker whose planes have no 3-D solution is reported
+    /// planar with `pose_3d_cue_strength` `None`, and the reason logged.
     pub pose_3d: bool,
     /// Refine each marker on its whole dot field (a periodic grid: the whole image), robustly
     /// (docs/design.md#field-fit). `None` (default): on for HP codes and stamps, off for
@@ -251,6 +274,12 @@ pub struct DetectorSettings {
     /// `None` (default): each marker's measured scale. The measured scale is reported either
     /// way ([`MarkerPose::measured_pixel_size`]).
     pub pixel_size: Option<f64>,
+    /// Focal length of a perspective camera, pixels (`f_x` of its calibration; principal
+    /// point taken at the image centre), for [`DetectorSettings::pose_3d`]: each marker's
+    /// depth `z` (pattern units) and, for HP codes and stamps off the optical axis, the
+    /// perspective solution of its angles. `None` (default): orthographic optics (a
+    /// microscope), `z` unobserved. Needs `pose_3d`.
+    pub focal_length_px: Option<f64>,
 }
 
 impl DetectorSettings {
@@ -272,6 +301,13 @@ impl DetectorSettings {
         }
         if let Some(pixel_size) = self.pixel_size {
             limits::check_pixel_size(pixel_size)?;
+        }
+        crate::marker_tilt::check_focal_length(self.focal_length_px)?;
+        if self.focal_length_px.is_some() && !self.pose_3d {
+            return Err(Error::parameter(
+                "focal_length_px",
+                "sets the depth of the out-of-plane pose only: turn pose_3d on too",
+            ));
         }
         Ok(())
     }
@@ -311,20 +347,13 @@ impl DetectorSettings {
                 .map(|p| crate::layout::Layout::period(p.layout()))
         });
         let pattern = pattern.as_ref();
-        if self.pose_3d && !matches!(kind, MarkerKind::Megarena | MarkerKind::Periodic) {
-            // Never silently planar: the caller asked for tilt that is not measured.
-            return Err(Error::parameter(
-                "pose_3d",
-                "out-of-plane angles (beta, gamma) are measured for Megarena patterns and \
-                 periodic grids only; HP codes and stamps give planar poses: leave pose_3d off",
-            ));
-        }
         match kind {
             MarkerKind::Periodic => {
                 let mut p = PeriodicParams::new(required_period(period)?);
                 p.polarity = self.polarity.unwrap_or_default();
                 p.field_fit = self.field_fit.unwrap_or(false);
                 p.pose_3d = self.pose_3d;
+                p.focal_length_px = self.focal_length_px;
                 Ok(DetectorConfig::Periodic(p))
             }
             MarkerKind::Megarena => self.megarena_config(pattern, period),
@@ -354,6 +383,7 @@ impl DetectorSettings {
         let mut p = MegarenaParams::with_sequence(required_period(period)?, sequence);
         p.polarity = self.polarity.unwrap_or_default();
         p.pose_3d = self.pose_3d;
+        p.focal_length_px = self.focal_length_px;
         Ok(DetectorConfig::Megarena(p))
     }
 
@@ -378,6 +408,8 @@ impl DetectorSettings {
         p.window_size = self.window_size;
         p.polarity = self.polarity;
         p.field_fit = self.field_fit.unwrap_or(true);
+        p.pose_3d = self.pose_3d;
+        p.focal_length_px = self.focal_length_px;
         p.validate()?;
         Ok(DetectorConfig::HpCode(p))
     }
@@ -407,6 +439,8 @@ impl DetectorSettings {
         p.window_size = self.window_size;
         p.polarity = self.polarity;
         p.field_fit = self.field_fit.unwrap_or(true);
+        p.pose_3d = self.pose_3d;
+        p.focal_length_px = self.focal_length_px;
         Ok(DetectorConfig::Stamp(p))
     }
 }
@@ -758,6 +792,7 @@ impl From<&PeriodicDetection> for MarkerPose {
             slope_std: Some(found.gradient_std),
             measured_pixel_size: pose.pixel_size,
             pixel_size_std: 0.0,
+            tilt_covariance: None,
         }
     }
 }
@@ -784,13 +819,14 @@ impl From<&MegarenaDetection> for MarkerPose {
             slope_std: None,
             measured_pixel_size: pose.pixel_size,
             pixel_size_std: 0.0,
+            tilt_covariance: None,
         }
     }
 }
 
 impl From<&StampDetection> for MarkerPose {
     fn from(found: &StampDetection) -> Self {
-        MarkerPose {
+        let planar = MarkerPose {
             id: found.id as u64,
             pose: found.pose,
             origin_px: found.origin_px,
@@ -804,13 +840,15 @@ impl From<&StampDetection> for MarkerPose {
             slope_std: None,
             measured_pixel_size: found.pose.pixel_size,
             pixel_size_std: 0.0,
-        }
+            tilt_covariance: None,
+        };
+        planar.with_tilt(found.out_of_plane.as_ref())
     }
 }
 
 impl From<&HpCodeMarker> for MarkerPose {
     fn from(found: &HpCodeMarker) -> Self {
-        MarkerPose {
+        let planar = MarkerPose {
             id: found.id,
             pose: found.pose,
             origin_px: found.origin_px,
@@ -824,6 +862,25 @@ impl From<&HpCodeMarker> for MarkerPose {
             slope_std: None,
             measured_pixel_size: found.pose.pixel_size,
             pixel_size_std: 0.0,
+            tilt_covariance: None,
+        };
+        planar.with_tilt(found.out_of_plane.as_ref())
+    }
+}
+
+impl MarkerPose {
+    /// This planar marker with the out-of-plane pose `tilt` (HP codes and stamps), if any: its
+    /// pose, cue and covariance; the measured scale is the 3-D solution's.
+    fn with_tilt(self, tilt: Option<&MarkerTilt>) -> MarkerPose {
+        match tilt {
+            Some(t) => MarkerPose {
+                pose: t.pose,
+                pose_3d_cue_strength: Some(t.cue_strength),
+                measured_pixel_size: t.pose.pixel_size,
+                tilt_covariance: Some(t.covariance),
+                ..self
+            },
+            None => self,
         }
     }
 }
@@ -856,6 +913,7 @@ mod tests {
             slope_std: None,
             measured_pixel_size: 0.5,
             pixel_size_std: 0.0,
+            tilt_covariance: None,
         }
     }
 
@@ -882,33 +940,62 @@ mod tests {
         assert_eq!(m.covariance(10.0, 256.0)[0][0], plain[0][0]);
     }
 
-    /// `pose_3d` on a marker type whose tilt is not measured is refused with the parameter's
-    /// name, never silently planar; Megarena and periodic grids take it.
+    /// `pose_3d` reaches every marker type's parameters with the focal length; a focal length
+    /// without `pose_3d`, or not above 0, is refused by name.
     #[test]
-    fn pose_3d_is_refused_where_tilt_is_not_measured() {
+    fn pose_3d_and_the_focal_length_reach_every_marker_type() {
+        let dir = std::env::temp_dir().join(format!("vernier_pose3d_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let bitmap = dir.join("stamp.png");
+        image::GrayImage::from_fn(9, 9, |x, y| {
+            image::Luma([if (x + y) % 3 == 0 { 255 } else { 0 }])
+        })
+        .save(&bitmap)
+        .unwrap();
         let settings = |pattern_type| DetectorSettings {
             pattern_type,
             period: Some(10.0),
             code_size: Some(33),
             code_depth: Some(8),
+            bitmaps: vec![bitmap.clone()],
             pose_3d: true,
+            focal_length_px: Some(8000.0),
             ..DetectorSettings::default()
         };
-        for kind in [MarkerKind::HpCode, MarkerKind::Stamp] {
-            match settings(kind).to_config() {
-                Err(e) => {
-                    let e = e.to_string();
-                    assert!(e.contains("pose_3d"), "{kind:?}: {e}");
-                    assert!(e.contains("Megarena") && e.contains("periodic"), "{e}");
-                }
-                Ok(_) => panic!("{kind:?}: pose_3d accepted"),
-            }
+        let focal = Some(8000.0);
+        match settings(MarkerKind::HpCode).to_config() {
+            Ok(DetectorConfig::HpCode(p)) => assert!(p.pose_3d && p.focal_length_px == focal),
+            other => panic!("HP code: {other:?}"),
         }
-        assert!(settings(MarkerKind::Megarena).to_config().is_ok());
+        match settings(MarkerKind::Stamp).to_config() {
+            Ok(DetectorConfig::Stamp(p)) => assert!(p.pose_3d && p.focal_length_px == focal),
+            other => panic!("stamp: {other:?}"),
+        }
+        match settings(MarkerKind::Megarena).to_config() {
+            Ok(DetectorConfig::Megarena(p)) => assert!(p.pose_3d && p.focal_length_px == focal),
+            other => panic!("Megarena: {other:?}"),
+        }
         match settings(MarkerKind::Periodic).to_config() {
-            Ok(DetectorConfig::Periodic(p)) => assert!(p.pose_3d),
+            Ok(DetectorConfig::Periodic(p)) => assert!(p.pose_3d && p.focal_length_px == focal),
             other => panic!("periodic: {other:?}"),
         }
+        let planar = DetectorSettings {
+            pose_3d: false,
+            ..settings(MarkerKind::HpCode)
+        };
+        let negative = DetectorSettings {
+            focal_length_px: Some(-1.0),
+            ..settings(MarkerKind::HpCode)
+        };
+        for wrong in [planar, negative] {
+            let e = wrong
+                .to_config()
+                .err()
+                .map(|e| e.to_string())
+                .unwrap_or_default();
+            assert!(e.contains("focal_length_px"), "{e}");
+        }
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     #[test]

@@ -34,6 +34,7 @@ pub use grouping::{
 
 use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
+use crate::marker_tilt::{marker_tilt, MarkerTilt, TiltInput};
 use crate::phase::{
     wrap_angle, FieldFit, LobePrior, PhaseAnalysis, PhaseEngine, PhaseParams, Rival,
 };
@@ -133,6 +134,13 @@ pub struct HpCodeParams {
     /// hair down-weighted. Default `true`; the window's planes give the pose when `false`
     /// (and with [`HpCodeParams::original`]).
     pub field_fit: bool,
+    /// Measure each marker's out-of-plane angles `beta`, `gamma` ([`HpCodeMarker::out_of_plane`],
+    /// docs/design.md#pose-3d-markers) from its whole-field fit. Default `false`.
+    pub pose_3d: bool,
+    /// Focal length of a perspective camera, pixels (principal point at the image centre):
+    /// with [`HpCodeParams::pose_3d`], each marker's depth `z` and the perspective solution.
+    /// `None` (default): orthographic optics, `z` unknown.
+    pub focal_length_px: Option<f64>,
 }
 
 /// How the pose of a marker follows from its two phase planes.
@@ -168,6 +176,8 @@ impl HpCodeParams {
             pose_formula: PoseFormula::Symmetric,
             threads: 0,
             field_fit: true,
+            pose_3d: false,
+            focal_length_px: None,
         }
     }
 
@@ -226,6 +236,7 @@ impl HpCodeParams {
                 format!("must be in [0, 1], got {}", self.min_id_confidence),
             ));
         }
+        crate::marker_tilt::check_focal_length(self.focal_length_px)?;
         self.phase.validate()
     }
 }
@@ -264,6 +275,9 @@ pub struct HpCodeMarker {
     pub phase_std: [f64; 2],
     /// Standard deviation of `pose.alpha` from the whole-field fit, radians; `None` without it.
     pub yaw_std: Option<f64>,
+    /// The out-of-plane pose ([`HpCodeParams::pose_3d`]); `None` when not asked for, or when
+    /// the marker's planes have no 3-D solution (logged).
+    pub out_of_plane: Option<MarkerTilt>,
 }
 
 /// Detects HP code markers. Keeps the phase engine's FFT plans and the finder scanner's buffers
@@ -614,6 +628,8 @@ impl Measure<'_> {
             image_center,
             reading.mirrored,
         );
+        let out_of_plane =
+            self.out_of_plane(&grid, field.as_ref(), &analysis, image_center, &reading);
         Ok(Some(HpCodeMarker {
             id: reading.id,
             code_size: grid.code_size,
@@ -628,7 +644,27 @@ impl Measure<'_> {
             field,
             phase_std,
             yaw_std,
+            out_of_plane,
         }))
+    }
+
+    /// The out-of-plane pose of the marker read as `reading` ([`HpCodeParams::pose_3d`]):
+    /// `None` when not asked for, or (logged) when its planes have no 3-D solution.
+    fn out_of_plane(
+        &self,
+        grid: &fine::MarkerGrid,
+        field: Option<&FieldFit>,
+        analysis: &PhaseAnalysis,
+        image_center: Vector2<f64>,
+        reading: &marker_id::IdReading,
+    ) -> Option<MarkerTilt> {
+        if !self.params.pose_3d {
+            return None;
+        }
+        let input = tilt_input(grid, field, analysis, image_center, reading.mirrored);
+        marker_tilt(&input, self.params.period, self.params.focal_length_px)
+            .map_err(|e| log::warn!("HP code {}: no out-of-plane pose: {e}", reading.id))
+            .ok()
     }
 
     /// The marker of `triple` up to its field fit: its window's centre (image pixels) and
@@ -986,6 +1022,36 @@ struct ReadInput<'a> {
     dots: marker_id::DotGrid,
     /// Standard deviation of the dots' fitted centre, periods (`None` without a fit).
     dots_std: Option<f64>,
+}
+
+/// What a marker's out-of-plane pose is measured from: its whole-field fit, else its
+/// window's planes.
+fn tilt_input(
+    grid: &fine::MarkerGrid,
+    field: Option<&FieldFit>,
+    analysis: &PhaseAnalysis,
+    image_center: Vector2<f64>,
+    mirrored: bool,
+) -> TiltInput {
+    let origin = grid.dots.center - image_center;
+    match field {
+        Some(fit) => TiltInput::from_field(fit, [[1, 0], [0, 1]], origin, mirrored),
+        None => {
+            let gradient = |p: &crate::phase::PhasePlane| Vector2::new(p.a, p.b);
+            let phase_std = match grid.x_from_plane {
+                0 => analysis.phase_std,
+                _ => [analysis.phase_std[1], analysis.phase_std[0]],
+            };
+            let window = analysis.size.0.min(analysis.size.1) as f64;
+            TiltInput::from_window(
+                [gradient(&grid.plane_x), gradient(&grid.plane_y)],
+                phase_std,
+                window,
+                origin,
+                mirrored,
+            )
+        }
+    }
 }
 
 /// A marker read and checked: its ID reading, and its finders, grid and dots, mirrored where

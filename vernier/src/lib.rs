@@ -114,6 +114,7 @@ pub mod detector;
 pub use detector::{Detector, DetectorConfig, DetectorSettings, MarkerKind, MarkerPose};
 pub mod export;
 pub mod hpcode;
+pub mod marker_tilt;
 pub mod megarena;
 pub mod snapshot;
 pub mod stamp;

@@ -33,9 +33,13 @@ pub struct PeriodicParams {
     pub field_fit: bool,
     /// Also measure the out-of-plane angles (docs/design.md#pose-3d): every detection then
     /// carries [`PeriodicDetection::out_of_plane`], the orthographic solutions with the
-    /// perspective cue's choice (`z = 0`, no focal length), from the final planes (the field
+    /// perspective cue's choice (`z = 0` without [`Self::focal_length_px`]), from the final planes (the field
     /// fit's when there is one). Costs one demodulation pass over the image. Default `false`.
     pub pose_3d: bool,
+    /// Focal length of a perspective camera, pixels: with `pose_3d`, the depth
+    /// `z = pixel_size·focal` of the pattern point on the optical axis (the image centre).
+    /// `None` (default): `z` unknown (0).
+    pub focal_length_px: Option<f64>,
 }
 
 impl PeriodicParams {
@@ -47,6 +51,7 @@ impl PeriodicParams {
             phase: PhaseParams::default(),
             field_fit: false,
             pose_3d: false,
+            focal_length_px: None,
         }
     }
 }
@@ -167,7 +172,7 @@ impl PeriodicDetector {
                 image,
                 &axes,
                 self.params.period,
-                None,
+                self.params.focal_length_px,
             )?)
         } else {
             None

@@ -619,7 +619,7 @@ fn pose_3d_covariance_matches_the_spread_over_noisy_renders() {
 }
 
 #[test]
-fn pose_3d_setting_is_off_by_default_and_refused_for_other_types() {
+fn pose_3d_setting_is_off_by_default_and_taken_by_every_type() {
     let layout = MegarenaLayout::new(10.0, 8).unwrap();
     let truth = Pose {
         x: -3000.0,
@@ -648,8 +648,8 @@ fn pose_3d_setting_is_off_by_default_and_refused_for_other_types() {
     );
     let cov = m.covariance(10.0, 512.0);
     assert_eq!((cov[3][3], cov[4][4]), (1e6, 1e6));
-    // An HP code's tilt is not measured: the setting is refused, naming itself, rather than
-    // giving silently planar poses; a periodic grid takes it (tests/periodic_pose_3d.rs).
+    // Every other type takes the setting too (tests/periodic_pose_3d.rs,
+    // tests/marker_pose_3d.rs).
     let other = |pattern_type, pose_3d| DetectorSettings {
         pattern_type,
         period: Some(10.0),
@@ -657,11 +657,9 @@ fn pose_3d_setting_is_off_by_default_and_refused_for_other_types() {
         pose_3d,
         ..Default::default()
     };
-    assert!(other(MarkerKind::HpCode, false).to_config().is_ok());
-    assert!(other(MarkerKind::Periodic, true).to_config().is_ok());
-    match other(MarkerKind::HpCode, true).to_config() {
-        Err(e) => assert!(e.to_string().contains("pose_3d"), "{e}"),
-        Ok(_) => panic!("pose_3d accepted for an HP code"),
+    for pose_3d in [false, true] {
+        assert!(other(MarkerKind::HpCode, pose_3d).to_config().is_ok());
+        assert!(other(MarkerKind::Periodic, pose_3d).to_config().is_ok());
     }
 }
 

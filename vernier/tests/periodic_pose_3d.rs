@@ -4,13 +4,11 @@
 
 mod common;
 
-use rand::{rngs::SmallRng, SeedableRng};
-use rand_distr::{Distribution, Normal};
 use vernier::detector::{DetectorSettings, MarkerKind};
 use vernier::layout::PeriodicLayout;
 use vernier::phase::wrap_to_pi;
 use vernier::render::render;
-use vernier::{Detector, GreyImage, Pose};
+use vernier::{Detector, Pose};
 
 /// Physical period of the test grids, pattern units.
 const PERIOD: f64 = 10.0;
@@ -108,22 +106,6 @@ fn perspective_renders_give_the_right_solution() {
     );
 }
 
-/// `clean` with Gaussian noise of standard deviation `noise` (fraction of full scale) added,
-/// clipped to `[0, 1]` and quantised to 12 bits, as [`render`] does: one clean render serves
-/// every noise draw.
-fn noisy(clean: &GreyImage, noise: f64, seed: u64) -> GreyImage {
-    let mut rng = SmallRng::seed_from_u64(seed);
-    let normal = Normal::new(0.0, noise).unwrap();
-    let levels = 4095.0;
-    let pixels = clean
-        .pixels()
-        .iter()
-        .map(|&v| ((v as f64 + normal.sample(&mut rng)).clamp(0.0, 1.0) * levels).round() / levels)
-        .map(|v| v as f32)
-        .collect();
-    GreyImage::new(clean.width(), clean.height(), pixels).unwrap()
-}
-
 /// Predicted over observed standard deviation of `(beta, gamma, alpha)` over `runs` noisy
 /// copies of one tilted view at noise `noise`, by the engine or the field fit.
 fn sigma_ratios(field_fit: bool, noise: f64, runs: u64) -> [f64; 3] {
@@ -142,7 +124,9 @@ fn sigma_ratios(field_fit: bool, noise: f64, runs: u64) -> [f64; 3] {
     let clean = render(&layout(), &truth, &opts).unwrap();
     let mut spread = common::TiltSpread::default();
     for seed in 0..runs {
-        let m = &detector.detect(&noisy(&clean, noise, seed)).unwrap()[0];
+        let m = &detector
+            .detect(&common::noisy_12_bit(&clean, noise, seed))
+            .unwrap()[0];
         spread.add(m, truth.beta, &m.covariance(PERIOD, m.window_px as f64));
     }
     spread.ratios()

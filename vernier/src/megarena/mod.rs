@@ -46,9 +46,13 @@ pub struct MegarenaParams {
     pub phase: PhaseParams,
     /// Also measure the out-of-plane angles (docs/design.md#pose-3d): every detection then
     /// carries [`MegarenaDetection::out_of_plane`], the orthographic solutions with the
-    /// perspective cue's choice (`z = 0`, no focal length). Costs one demodulation pass over
+    /// perspective cue's choice (`z = 0` without [`Self::focal_length_px`]). Costs one demodulation pass over
     /// the image. Default `false`.
     pub pose_3d: bool,
+    /// Focal length of a perspective camera, pixels: with `pose_3d`, the depth
+    /// `z = pixel_size·focal` of the pattern point on the optical axis (the image centre).
+    /// `None` (default): `z` unknown (0).
+    pub focal_length_px: Option<f64>,
 }
 
 impl MegarenaParams {
@@ -69,6 +73,7 @@ impl MegarenaParams {
             polarity: Polarity::BrightDots,
             phase: PhaseParams::default(),
             pose_3d: false,
+            focal_length_px: None,
         }
     }
 
@@ -241,7 +246,7 @@ impl MegarenaDetector {
                 image,
                 &pattern_planes,
                 self.params.period,
-                None,
+                self.params.focal_length_px,
             )?)
         } else {
             None

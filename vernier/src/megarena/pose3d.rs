@@ -233,7 +233,7 @@ fn noise_floor(image: &GreyImage) -> f64 {
 }
 
 /// `M`: pattern units → pixels, from `[∇φ_x; ∇φ_y] = (2π/P)·M⁻¹`.
-fn pixel_from_pattern(planes: &PatternPlanes, period: f64) -> Result<Matrix2<f64>> {
+pub(crate) fn pixel_from_pattern(planes: &PatternPlanes, period: f64) -> Result<Matrix2<f64>> {
     let [px, py] = planes;
     let scale = period / TAU;
     Matrix2::new(px.a, px.b, py.a, py.b)

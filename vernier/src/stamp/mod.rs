@@ -46,6 +46,7 @@ pub use quads::{Quad, QuadParams};
 use crate::error::{Error, Result};
 use crate::grey_image::{GreyImage, Polarity};
 use crate::layout::BitmapLayout;
+use crate::marker_tilt::{marker_tilt, MarkerTilt, TiltInput};
 use crate::parallel;
 use crate::phase::{
     fit_dot_field_against, fit_dot_field_tracked, wrap_angle, FieldFit, NodeMask, PhaseAnalysis,
@@ -137,6 +138,14 @@ pub struct StampParams {
     pub threads: usize,
     /// Phase-engine settings.
     pub phase: PhaseParams,
+    /// Measure each stamp's out-of-plane angles `beta`, `gamma`
+    /// ([`StampDetection::out_of_plane`], docs/design.md#pose-3d-markers) from its whole-field
+    /// fit (its window's planes without one). Default `false`.
+    pub pose_3d: bool,
+    /// Focal length of a perspective camera, pixels (principal point at the image centre):
+    /// with [`StampParams::pose_3d`], each stamp's depth `z` and the perspective solution.
+    /// `None` (default): orthographic optics, `z` unknown.
+    pub focal_length_px: Option<f64>,
 }
 
 impl StampParams {
@@ -159,11 +168,14 @@ impl StampParams {
             field_fit: true,
             threads: 0,
             phase: PhaseParams::default(),
+            pose_3d: false,
+            focal_length_px: None,
         }
     }
 
     /// Checks every field, naming the first invalid one; returns the resolved search mode.
     fn validate(&self) -> Result<StampSearch> {
+        crate::marker_tilt::check_focal_length(self.focal_length_px)?;
         if !(self.period.is_finite() && self.period > 0.0) {
             return Err(Error::parameter(
                 "period",
@@ -322,6 +334,9 @@ pub struct StampDetection {
     pub phase_std: [f64; 2],
     /// Standard deviation of `pose.alpha` from the whole-field fit, radians; `None` without it.
     pub yaw_std: Option<f64>,
+    /// The out-of-plane pose ([`StampParams::pose_3d`]); `None` when not asked for, or when
+    /// the stamp's planes have no 3-D solution (logged).
+    pub out_of_plane: Option<MarkerTilt>,
 }
 
 /// Finds stamp / bitmap markers and measures their absolute poses. Keeps FFT plans, the
@@ -970,6 +985,14 @@ impl StampDetector {
         .map(|d| {
             let (icx, icy) = image.center();
             let at = d.origin_px - Vector2::new(icx as f64, icy as f64);
+            let out_of_plane = match &field {
+                Some((_, fit)) if self.params.pose_3d => {
+                    let axes = found.orientation.matrix();
+                    let input = TiltInput::from_field(fit, axes, at, found.orientation.mirrored);
+                    self.tilt(&input, d.id)
+                }
+                _ => d.out_of_plane,
+            };
             let (phase_std, yaw_std, field) = match field {
                 Some((_, fit)) => {
                     let mut s = fit.phase_std_at(at.x, at.y);
@@ -985,6 +1008,7 @@ impl StampDetector {
                 field,
                 phase_std,
                 yaw_std,
+                out_of_plane,
                 ..d
             }
         })
@@ -1048,6 +1072,14 @@ impl StampDetector {
             None => fit_dot_field_against(image, start, &mask, Some(rival), Some(tilt)),
         }?;
         Some((fit.planes.map(|p| moved(&p, -1.0)), fit))
+    }
+
+    /// The out-of-plane pose of stamp `id` measured from `input`; `None` (logged) when its
+    /// planes have no 3-D solution.
+    fn tilt(&self, input: &TiltInput, id: usize) -> Option<MarkerTilt> {
+        marker_tilt(input, self.params.period, self.params.focal_length_px)
+            .map_err(|e| log::warn!("stamp {id}: no out-of-plane pose: {e}"))
+            .ok()
     }
 
     /// Why a match is not reported (`None`: it is).
@@ -1328,6 +1360,18 @@ impl StampDetector {
             planar
         };
         let decode_confidence = found.vote.clamp(0.0, 1.0);
+        let out_of_plane = if self.params.pose_3d {
+            let phase_std = if r[0][0] == 0 {
+                [analysis.phase_std[1], analysis.phase_std[0]] // pattern x runs along plane 2
+            } else {
+                analysis.phase_std
+            };
+            let window = analysis.size.0.min(analysis.size.1) as f64;
+            let input = TiltInput::from_window([gx, gy], phase_std, window, from_center, mirrored);
+            self.tilt(&input, found.bitmap)
+        } else {
+            None
+        };
         Some(StampDetection {
             id: found.bitmap,
             pose,
@@ -1343,6 +1387,7 @@ impl StampDetector {
             analysis,
             field: None,
             yaw_std: None,
+            out_of_plane,
         })
     }
 

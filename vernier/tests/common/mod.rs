@@ -109,6 +109,24 @@ pub fn noisy(image: &GreyImage, sigma: f64, seed: u64) -> GreyImage {
     })
 }
 
+/// `clean` with Gaussian noise of standard deviation `noise` (fraction of full scale) added,
+/// clipped to `[0, 1]` and quantised to 12 bits, as `vernier::render::render` does: one clean render serves
+/// every noise draw.
+pub fn noisy_12_bit(clean: &GreyImage, noise: f64, seed: u64) -> GreyImage {
+    use rand::{rngs::SmallRng, SeedableRng};
+    use rand_distr::{Distribution, Normal};
+    let mut rng = SmallRng::seed_from_u64(seed);
+    let normal = Normal::new(0.0, noise).unwrap();
+    let levels = 4095.0;
+    let pixels = clean
+        .pixels()
+        .iter()
+        .map(|&v| ((v as f64 + normal.sample(&mut rng)).clamp(0.0, 1.0) * levels).round() / levels)
+        .map(|v| v as f32)
+        .collect();
+    GreyImage::new(clean.width(), clean.height(), pixels).unwrap()
+}
+
 /// `image` under a Gaussian blur of standard deviation `sigma` pixels (separable, ±3σ, edges
 /// replicated).
 pub fn blurred(image: &GreyImage, sigma: f64) -> GreyImage {

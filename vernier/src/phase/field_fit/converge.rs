@@ -125,6 +125,7 @@ fn finished_fit(
         .map_or((None, 0.0), |t| (Some(t.perspective), t.weight));
     FieldFit {
         perspective,
+        perspective_covariance: step.tilt.map(|t| t.covariance),
         tilt_weight,
         start,
         planes: model.planes,

@@ -107,7 +107,7 @@ use converge::*;
 pub use mask::NodeMask;
 use mask::*;
 use model::*;
-use nalgebra::{DMatrix, DVector, Matrix2, Matrix6, SMatrix, SVector, Vector2, Vector6};
+use nalgebra::{DMatrix, DVector, Matrix2, Matrix4, Matrix6, SMatrix, SVector, Vector2, Vector6};
 use num_complex::Complex64;
 use pixels::*;
 use std::f64::consts::{PI, SQRT_2, TAU};
@@ -318,6 +318,10 @@ pub struct FieldFit {
     /// lattice coordinates `u = v/(1 − p·v)`, `v` linear in the image
     /// (docs/design.md#tilt-centre).
     pub perspective: Option<Vector2<f64>>,
+    /// Covariance of [`FieldFit::perspective`], per period squared, with the residual's
+    /// model error counted (its last pass's estimate; what earlier passes took into the phase
+    /// model is a constant of that pass). `None` with `perspective`.
+    pub perspective_covariance: Option<Matrix2<f64>>,
     /// The part of `perspective` that moved the planes, in `[0, 1]`: zero while it is not
     /// significant at the level 10⁻³ (an untilted field's measured `p` is noise), near 1 on a
     /// clear tilt, 1 where the fit carried the tilt in its phase model (a steep tilt whose
@@ -343,6 +347,15 @@ impl FieldFit {
     /// Standard deviation of each plane's phase at the image-frame point `(x, y)`, radians.
     pub fn phase_std_at(&self, x: f64, y: f64) -> [f64; 2] {
         phase_std_at(&self.covariance, self.frame, (x, y))
+    }
+
+    /// Covariance of the planes' gradients `(a₁, b₁, a₂, b₂)` (`∂φ_l/∂col`, `∂φ_l/∂row`,
+    /// image frame), (rad/pixel)², white noise alone as [`FieldFit::phase_std_at`].
+    pub fn gradient_covariance(&self) -> Matrix4<f64> {
+        let s = self.frame.2;
+        // (α_l, β_l, γ_l) = (x slope, y slope, offset) in normalised coordinates.
+        let slopes = [0, 1, 3, 4];
+        Matrix4::from_fn(|i, j| self.covariance[(slopes[i], slopes[j])] / (s * s))
     }
 
     /// Whether this fit should replace `rival`, the window fit (its offsets' σ at its

@@ -79,6 +79,9 @@ pub(super) struct Tilt {
     /// Its information (the Schur complement of the other unknowns, weighted squares per unit
     /// of `p` squared).
     pub(super) information: Matrix2<f64>,
+    /// Covariance of `p`, per period squared: `s·I⁻¹`, model error included (`s` as in
+    /// [`Tilt::weight`]).
+    pub(super) covariance: Matrix2<f64>,
     /// How much of `p` the planes take, in `[0, 1)`: the soft threshold `1 − χ²₀/χ²` of its
     /// Mahalanobis square `χ² = pᵀ·I·p/s` (`s` the residual's scale, model error included)
     /// above [`TEST_LIMIT_TWO_DOF`] `χ²₀`, zero below. On an untilted field `p` is noise,
@@ -118,8 +121,9 @@ impl Tilt {
         let reduced = own - Matrix2::from_iterator((cross.transpose() * &response).iter().copied());
         let rhs_rest = DVector::from_fn(m, |i, _| rhs[others[i]]);
         let pulled = response.transpose() * rhs_rest;
-        let perspective = reduced.try_inverse()?
-            * Vector2::new(rhs[tilt[0]] - pulled[0], rhs[tilt[1]] - pulled[1]);
+        let inverse = reduced.try_inverse()?;
+        let perspective =
+            inverse * Vector2::new(rhs[tilt[0]] - pulled[0], rhs[tilt[1]] - pulled[1]);
         let chi2 = perspective.dot(&(reduced * perspective)) / scale;
         let weight = if chi2.is_finite() && chi2 > TEST_LIMIT_TWO_DOF {
             1.0 - TEST_LIMIT_TWO_DOF / chi2
@@ -129,6 +133,7 @@ impl Tilt {
         perspective.iter().all(|v| v.is_finite()).then(|| Tilt {
             perspective,
             information: reduced,
+            covariance: inverse * scale,
             weight,
             response: SMatrix::from_fn(|i, j| response[(i, j)]),
         })
