@@ -7,25 +7,36 @@
 //! entries as dot products of whole columns: `N(N+1)/2 + N` products of [`BLOCK`] terms, with
 //! independent SIMD lanes and no store per term (a symmetric rank-`BLOCK` update, the blocking
 //! of BLAS `syrk`).
+//!
+//! The buffered columns and each block's products are single precision (eight lanes to a
+//! register instead of four), the sums over blocks double. The right-hand side is meant to
+//! hold the *residuals* of the current solution, so that single precision rounds a term of the
+//! size of the noise rather than of the data: the caller solves for the correction (or adds
+//! `N·x₀` back in double precision, [`NormalEquations::finish`]'s matrix times its `x₀`).
+//! Rounding the normal matrix to ~1e-7 leaves the fixed point of an iteration that re-forms
+//! the residuals each time where it is; only its rate of convergence sees it.
 
 use nalgebra::{SMatrix, SVector};
 
-/// Observations buffered per flush: 8 lanes of 8 (two AVX registers per chain).
+/// Observations buffered per flush: 4 lanes of 16 (two AVX registers per chain).
 const BLOCK: usize = 64;
 /// Independent partial sums per dot product.
-const LANES: usize = 8;
+const LANES: usize = 16;
+/// Partial sums kept per entry across blocks, double precision (half of [`LANES`]: one fold,
+/// no horizontal sum per product).
+const KEPT: usize = LANES / 2;
 
 /// Accumulator of the weighted normal equations of `N` unknowns.
 pub(crate) struct NormalEquations<const N: usize> {
     /// `columns[i][k]`: basis function `i` at buffered observation `k`.
-    columns: [[f64; BLOCK]; N],
-    data: [f64; BLOCK],
-    weights: [f64; BLOCK],
+    columns: [[f32; BLOCK]; N],
+    data: [f32; BLOCK],
+    weights: [f32; BLOCK],
     buffered: usize,
     /// Upper triangle of `Σ w·b·bᵀ` (row-major, the lower part unused) …
-    gram: [[f64; N]; N],
-    /// … and `Σ w·b·d`.
-    rhs: [f64; N],
+    gram: [[[f64; KEPT]; N]; N],
+    /// … and `Σ w·b·d`, in [`KEPT`] partial sums each.
+    rhs: [[f64; KEPT]; N],
 }
 
 impl<const N: usize> NormalEquations<N> {
@@ -36,8 +47,8 @@ impl<const N: usize> NormalEquations<N> {
             data: [0.0; BLOCK],
             weights: [0.0; BLOCK],
             buffered: 0,
-            gram: [[0.0; N]; N],
-            rhs: [0.0; N],
+            gram: [[[0.0; KEPT]; N]; N],
+            rhs: [[0.0; KEPT]; N],
         }
     }
 
@@ -46,10 +57,10 @@ impl<const N: usize> NormalEquations<N> {
     pub(crate) fn add(&mut self, basis: &[f64; N], data: f64, weight: f64) {
         let k = self.buffered;
         for (column, b) in self.columns.iter_mut().zip(basis) {
-            column[k] = *b;
+            column[k] = *b as f32;
         }
-        self.data[k] = data;
-        self.weights[k] = weight;
+        self.data[k] = data as f32;
+        self.weights[k] = weight as f32;
         self.buffered += 1;
         if self.buffered == BLOCK {
             self.flush();
@@ -62,11 +73,11 @@ impl<const N: usize> NormalEquations<N> {
     fn flush(&mut self) {
         self.weights[self.buffered..].fill(0.0);
         for i in 0..N {
-            let weighted: [f64; BLOCK] =
+            let weighted: [f32; BLOCK] =
                 std::array::from_fn(|k| self.weights[k] * self.columns[i][k]);
-            self.rhs[i] += dot(&weighted, &self.data);
+            add_lanes(&mut self.rhs[i], dot(&weighted, &self.data));
             for j in i..N {
-                self.gram[i][j] += dot(&weighted, &self.columns[j]);
+                add_lanes(&mut self.gram[i][j], dot(&weighted, &self.columns[j]));
             }
         }
         self.buffered = 0;
@@ -77,16 +88,17 @@ impl<const N: usize> NormalEquations<N> {
         if self.buffered > 0 {
             self.flush();
         }
-        let gram = SMatrix::from_fn(|i, j| self.gram[i.min(j)][i.max(j)]);
-        (gram, SVector::from(self.rhs))
+        let total = |lanes: &[f64; KEPT]| lanes.iter().sum::<f64>();
+        let gram = SMatrix::from_fn(|i, j| total(&self.gram[i.min(j)][i.max(j)]));
+        (gram, SVector::from(self.rhs.map(|r| total(&r))))
     }
 }
 
 /// `Σ a_k·b_k` in [`LANES`] partial sums (lane-wise arithmetic vectorises; one running sum
-/// would not, its order being fixed).
+/// would not, its order being fixed), folded to [`KEPT`] in double precision.
 #[inline(always)]
-fn dot(a: &[f64; BLOCK], b: &[f64; BLOCK]) -> f64 {
-    let mut partial = [0.0f64; LANES];
+fn dot(a: &[f32; BLOCK], b: &[f32; BLOCK]) -> [f64; KEPT] {
+    let mut partial = [0.0f32; LANES];
     // Constant indices: no iterator to build, no bounds to check (zipped chunk iterators were
     // built out of line, once per product, in the AVX2 sweep).
     for chunk in 0..BLOCK / LANES {
@@ -95,7 +107,15 @@ fn dot(a: &[f64; BLOCK], b: &[f64; BLOCK]) -> f64 {
             *sum += a[k] * b[k];
         }
     }
-    partial.iter().sum()
+    std::array::from_fn(|k| (partial[k] + partial[k + KEPT]) as f64)
+}
+
+/// `sum += lanes`, lane by lane.
+#[inline(always)]
+fn add_lanes(sum: &mut [f64; KEPT], lanes: [f64; KEPT]) {
+    for (s, l) in sum.iter_mut().zip(lanes) {
+        *s += l;
+    }
 }
 
 #[cfg(test)]
@@ -119,8 +139,9 @@ mod tests {
                 rhs += weight * data * b;
             }
             let (g, r) = equations.finish();
-            assert!((g - gram).norm() <= 1e-12 * gram.norm().max(1.0), "{count}");
-            assert!((r - rhs).norm() <= 1e-12 * rhs.norm().max(1.0), "{count}");
+            // Single-precision blocks.
+            assert!((g - gram).norm() <= 1e-6 * gram.norm().max(1.0), "{count}");
+            assert!((r - rhs).norm() <= 1e-6 * rhs.norm().max(1.0), "{count}");
             assert_eq!(g, g.transpose());
         }
     }
