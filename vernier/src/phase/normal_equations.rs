@@ -72,6 +72,25 @@ impl<const N: usize> NormalEquations<N> {
     #[inline(always)]
     fn flush(&mut self) {
         self.weights[self.buffered..].fill(0.0);
+        self.buffered = 0;
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2")
+                && std::arch::is_x86_feature_detected!("fma")
+            {
+                // SAFETY: the CPU supports the features the kernel is compiled for.
+                unsafe {
+                    avx2::flush(
+                        &self.columns,
+                        &self.weights,
+                        &self.data,
+                        &mut self.gram,
+                        &mut self.rhs,
+                    )
+                };
+                return;
+            }
+        }
         for i in 0..N {
             let weighted: [f32; BLOCK] =
                 std::array::from_fn(|k| self.weights[k] * self.columns[i][k]);
@@ -80,7 +99,6 @@ impl<const N: usize> NormalEquations<N> {
                 add_lanes(&mut self.gram[i][j], dot(&weighted, &self.columns[j]));
             }
         }
-        self.buffered = 0;
     }
 
     /// The normal matrix (symmetric) and right-hand side of the observations added.
@@ -115,6 +133,85 @@ fn dot(a: &[f32; BLOCK], b: &[f32; BLOCK]) -> [f64; KEPT] {
 fn add_lanes(sum: &mut [f64; KEPT], lanes: [f64; KEPT]) {
     for (s, l) in sum.iter_mut().zip(lanes) {
         *s += l;
+    }
+}
+
+/// [`NormalEquations::flush`] in AVX2 registers with fused multiply-adds (Rust does not fuse
+/// `a·b + c` by itself, and the portable loops compiled to half-width vectors).
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::{BLOCK, KEPT};
+    use std::arch::x86_64::*;
+
+    /// Registers per buffered column.
+    const V: usize = BLOCK / 8;
+
+    /// Adds the block's products to `gram` (upper triangle) and `rhs`, [`KEPT`] lanes each.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn flush<const N: usize>(
+        columns: &[[f32; BLOCK]; N],
+        weights: &[f32; BLOCK],
+        data: &[f32; BLOCK],
+        gram: &mut [[[f64; KEPT]; N]; N],
+        rhs: &mut [[f64; KEPT]; N],
+    ) {
+        let w = registers(weights);
+        for i in 0..N {
+            let column = registers(&columns[i]);
+            let mut weighted = [_mm256_setzero_ps(); V];
+            for k in 0..V {
+                weighted[k] = _mm256_mul_ps(w[k], column[k]);
+            }
+            accumulate(&mut rhs[i], dot(&weighted, data));
+            for j in i..N {
+                accumulate(&mut gram[i][j], dot(&weighted, &columns[j]));
+            }
+        }
+    }
+
+    /// The block's values in registers.
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    fn registers(v: &[f32; BLOCK]) -> [__m256; V] {
+        let mut out = [_mm256_setzero_ps(); V];
+        for (k, o) in out.iter_mut().enumerate() {
+            // SAFETY: lanes 8k..8k + 8 lie within the block.
+            *o = unsafe { _mm256_loadu_ps(v.as_ptr().add(8 * k)) };
+        }
+        out
+    }
+
+    /// `Σ a_k·b_k` in two chains of eight lanes, folded to [`KEPT`] double-precision lanes.
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    fn dot(a: &[__m256; V], b: &[f32; BLOCK]) -> [__m256d; 2] {
+        let b = registers(b);
+        let (mut even, mut odd) = (_mm256_mul_ps(a[0], b[0]), _mm256_mul_ps(a[1], b[1]));
+        for k in (2..V).step_by(2) {
+            even = _mm256_fmadd_ps(a[k], b[k], even);
+            odd = _mm256_fmadd_ps(a[k + 1], b[k + 1], odd);
+        }
+        let sum = _mm256_add_ps(even, odd);
+        [
+            _mm256_cvtps_pd(_mm256_castps256_ps128(sum)),
+            _mm256_cvtps_pd(_mm256_extractf128_ps::<1>(sum)),
+        ]
+    }
+
+    /// `sum += lanes`.
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    fn accumulate(sum: &mut [f64; KEPT], lanes: [__m256d; 2]) {
+        const _: () = assert!(KEPT == 8, "two registers of four lanes");
+        let p = sum.as_mut_ptr();
+        // SAFETY: lanes 0..8 of `sum`.
+        unsafe {
+            _mm256_storeu_pd(p, _mm256_add_pd(_mm256_loadu_pd(p), lanes[0]));
+            _mm256_storeu_pd(p.add(4), _mm256_add_pd(_mm256_loadu_pd(p.add(4)), lanes[1]));
+        }
     }
 }
 
