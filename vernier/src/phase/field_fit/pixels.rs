@@ -208,6 +208,58 @@ impl FieldBox {
             z: [Complex64::default(); 2],
             last: None,
             row_end: self.cols.start,
+            flat: FlatRow::new(planes, self.cols.len()),
+        }
+    }
+}
+
+/// Columns per block of a flat row's phase rotors ([`FlatRow`]).
+const ROTOR_BLOCK: usize = 8;
+
+/// A flat field's (no [`Warp`]) visited pixels of one row, computed in one pass over the
+/// row's span before the sweep takes them: each pixel's phases from its block's rotor and a
+/// table of powers of the column step (no chain of products along the row), its lattice
+/// coordinates, layout weight and intensity, with no sweep state in between.
+pub(super) struct FlatRow {
+    /// The planes over `2π`: lattice coordinates per pixel.
+    cycles: [PhasePlane; 2],
+    /// `e^{ija_l/2}` for `j < ROTOR_BLOCK`, and `e^{ia_l/2·ROTOR_BLOCK}`.
+    powers: [[Complex64; ROTOR_BLOCK]; 2],
+    block_step: [Complex64; 2],
+    /// The row's visited pixels, in column order, and the next one to hand out.
+    pixels: Vec<FlatPixel>,
+    next: usize,
+    /// The row they are on.
+    row: usize,
+}
+
+/// One pixel of a [`FlatRow`].
+#[derive(Clone, Copy)]
+struct FlatPixel {
+    col: usize,
+    xn: f64,
+    g: f64,
+    layout: f64,
+    w: f64,
+    z: [Complex64; 2],
+    linear: [f64; 2],
+    cell: Option<usize>,
+}
+
+impl FlatRow {
+    fn new(planes: &[PhasePlane; 2], capacity: usize) -> Self {
+        let half_turn = |p: &PhasePlane, j: usize| Complex64::from_polar(1.0, 0.5 * p.a * j as f64);
+        FlatRow {
+            cycles: planes.map(|p| PhasePlane {
+                a: p.a / TAU,
+                b: p.b / TAU,
+                c: p.c / TAU,
+            }),
+            powers: planes.map(|p| std::array::from_fn(|j| half_turn(&p, j))),
+            block_step: planes.map(|p| half_turn(&p, ROTOR_BLOCK)),
+            pixels: Vec::with_capacity(capacity),
+            next: 0,
+            row: 0,
         }
     }
 }
@@ -247,6 +299,8 @@ pub(super) struct FieldPixels<'a> {
     pub(super) last: Option<usize>,
     /// End of this row's span ([`FieldBox::span`]).
     pub(super) row_end: usize,
+    /// A flat field's current row.
+    pub(super) flat: FlatRow,
 }
 
 impl FieldPixels<'_> {
@@ -322,12 +376,110 @@ impl FieldPixels<'_> {
     }
 }
 
+impl FieldPixels<'_> {
+    /// Fills [`FieldPixels::flat`] with the visited pixels of row `row` of a flat field.
+    #[inline(always)]
+    fn fill_flat_row(&mut self, row: usize) {
+        let f = self.field;
+        let flat = &mut self.flat;
+        flat.pixels.clear();
+        flat.next = 0;
+        flat.row = row;
+        let span = f.span(row);
+        if span.is_empty() {
+            return;
+        }
+        let (x0, _, s) = f.frame;
+        let inverse_scale = 1.0 / s;
+        let y = row as f64 - f.center.1;
+        let x_start = span.start as f64 - f.center.0;
+        let mut seed = self
+            .planes
+            .map(|p| Complex64::from_polar(1.0, 0.5 * p.at(x_start, y)));
+        let base = (row - f.rows.start) * f.cols.len();
+        let clearance = f
+            .clearance
+            .get(base + (span.start - f.cols.start)..base + (span.end - f.cols.start))
+            .unwrap_or(&[]);
+        let pixels = self.pixels.get(row * self.width..).unwrap_or(&[]);
+        for (block, clear) in clearance.chunks(ROTOR_BLOCK).enumerate() {
+            for (j, &clear) in clear.iter().enumerate() {
+                if clear <= 0.0 {
+                    continue;
+                }
+                let col = span.start + block * ROTOR_BLOCK + j;
+                let x = col as f64 - f.center.0;
+                let half = [seed[0] * flat.powers[0][j], seed[1] * flat.powers[1][j]];
+                let linear = flat.cycles.map(|p| p.at(x, y));
+                let (layout, w) = self.weights.weight(linear, [half[0].re, half[1].re]);
+                let (layout, w) = (layout * clear as f64, w * clear as f64);
+                let g = pixels.get(col).copied().unwrap_or(f32::NAN) as f64;
+                if layout > 0.0 && g.is_finite() {
+                    flat.pixels.push(FlatPixel {
+                        col,
+                        xn: (x - x0) * inverse_scale,
+                        g,
+                        layout,
+                        w,
+                        z: [half[0] * half[0], half[1] * half[1]],
+                        linear,
+                        cell: self
+                            .mask
+                            .index(linear[0].round() as i64, linear[1].round() as i64),
+                    });
+                }
+            }
+            seed = [seed[0] * flat.block_step[0], seed[1] * flat.block_step[1]];
+        }
+    }
+
+    /// The next pixel of a flat field.
+    #[inline(always)]
+    fn next_flat(&mut self) -> Option<Pixel> {
+        let f = self.field;
+        while self.flat.next >= self.flat.pixels.len() {
+            if self.row >= f.rows.end {
+                return None;
+            }
+            self.fill_flat_row(self.row);
+            self.row += 1;
+            self.last = None;
+        }
+        let q = *self.flat.pixels.get(self.flat.next)?;
+        self.flat.next += 1;
+        let row = self.flat.row;
+        let advance = self.last.map_or(0, |l| q.col - l);
+        self.last = Some(q.col);
+        let (_, y0, s) = f.frame;
+        Some(Pixel {
+            xn: q.xn,
+            yn: (row as f64 - f.center.1 - y0) / s,
+            g: q.g,
+            layout: q.layout,
+            w: q.w,
+            z: q.z,
+            step: self.step,
+            chirp: [Complex64::new(1.0, 0.0); 2],
+            warped: false,
+            linear: q.linear,
+            jacobian: [[1.0, 0.0], [0.0, 1.0]],
+            inverse_square: 1.0,
+            cell: q.cell,
+            advance,
+            index: (row - f.rows.start) * f.cols.len() + (q.col - f.cols.start),
+        })
+    }
+}
+
 impl Iterator for FieldPixels<'_> {
     type Item = Pixel;
 
     #[inline(always)]
     fn next(&mut self) -> Option<Pixel> {
         let f = self.field;
+        if f.warp.is_none() {
+            return self.next_flat();
+        }
         let (x0, y0, s) = f.frame;
         loop {
             if self.row >= f.rows.end {

@@ -293,7 +293,6 @@ impl SweepSums {
         bank.move_to(p);
         let (h, h_slope) = bank.evaluate();
         let gain = model.gain(p);
-        let data = p.g - h;
         let r = p.g - gain * h - model.linear_at(p);
         let robust = match model.frozen.get(p.index) {
             Some(&w) => w as f64,
@@ -329,7 +328,9 @@ impl SweepSums {
         self.sum_w2 += w * w;
         self.sum_wr2 += w * r * r;
         let (basis, slopes) = basis_at(p, model, h, h_slope, gain);
-        self.equations.add(&basis, data, w, || {
+        // The residual, `g − h` less the basis times the current linear unknowns (the
+        // corrections' columns at 0): [`SweepSums::solve`] adds the model back.
+        self.equations.add(&basis, r, w, || {
             let c = tilt_centre.unwrap_or_default();
             let v = [p.linear[0] - c[0], p.linear[1] - c[1]];
             // ∂g/∂p_k = Σ_l ∂g/∂φ_l · 2π·v_l·v_k/D² (u = v/(1 − p·v), φ_l = 2π·u_l, at the
@@ -353,9 +354,16 @@ impl SweepSums {
         if sum_w <= 0.0 || self.sum_layout <= 0.0 {
             return None;
         }
-        let (normal, rhs, tilted) = self.equations.finish();
+        let (normal, residual_rhs, tilted) = self.equations.finish();
+        // The equations hold the residuals: the solution is a correction of the current linear
+        // unknowns (the plane corrections and the tilt's unknowns are corrections of 0, so the
+        // tilt's estimate is the same as from `g − h`).
+        let current = SVector::<f64, UNKNOWNS>::from_fn(|i, _| match i {
+            i if i < LINEAR => model.linear[i],
+            _ => 0.0,
+        });
         let inverse = normal.cholesky()?.inverse();
-        let x = inverse * rhs;
+        let x = current + inverse * residual_rhs;
         let residual_std = robust_sigma(&mut self.residuals);
         // Weighted least squares under white noise σ²: Cov = σ²·N⁻¹(Σw²bbᵀ)N⁻¹ ≈ σ²·N⁻¹·Σw²/Σw.
         // The residual's scale: the smaller of the kept pixels' weighted mean square residual
