@@ -476,10 +476,19 @@ impl Iterator for FieldPixels<'_> {
 
     #[inline(always)]
     fn next(&mut self) -> Option<Pixel> {
-        let f = self.field;
-        if f.warp.is_none() {
-            return self.next_flat();
+        if self.field.warp.is_none() {
+            self.next_flat()
+        } else {
+            self.next_warped()
         }
+    }
+}
+
+impl FieldPixels<'_> {
+    /// The next pixel of a field with the tilt in its phase model ([`Warp`]).
+    #[inline(always)]
+    fn next_warped(&mut self) -> Option<Pixel> {
+        let f = self.field;
         let (x0, y0, s) = f.frame;
         loop {
             if self.row >= f.rows.end {
