@@ -256,10 +256,27 @@ fn detect_pose_3d_prints_the_out_of_plane_angles() {
     assert!(marker.get("pose_3d_cue_strength").is_none(), "{line}");
 }
 
+/// A 16-bit PNG at `path` of `layout` rendered at `truth` (`size` px square, blur 0.5 px).
+fn save_render(
+    layout: &dyn vernier::layout::Layout,
+    truth: &vernier::Pose,
+    size: usize,
+    path: &std::path::Path,
+) {
+    let options = vernier::render::RenderOptions {
+        blur_sigma: 0.5,
+        bit_depth: Some(16),
+        ..vernier::render::RenderOptions::new(size, size)
+    };
+    vernier::render::render(layout, truth, &options)
+        .unwrap()
+        .save_png(path, 16)
+        .unwrap();
+}
+
 #[test]
 fn detect_pose_3d_on_a_periodic_grid() {
     use vernier::layout::PeriodicLayout;
-    use vernier::render::{render, RenderOptions};
     // A periodic grid (P = 10) tilted by beta = 0.2, gamma = 0.1 rad, orthographic render: one
     // of the two mirror solutions, magnitudes exact.
     let dir = scratch("pose3d_periodic");
@@ -273,19 +290,12 @@ fn detect_pose_3d_on_a_periodic_grid() {
         gamma: 0.1,
         pixel_size: 1.1,
     };
-    let options = RenderOptions {
-        blur_sigma: 0.5,
-        bit_depth: Some(16),
-        ..RenderOptions::new(256, 256)
-    };
-    render(
+    save_render(
         &PeriodicLayout::new(10.0, 61, 61).unwrap(),
         &truth,
-        &options,
-    )
-    .unwrap()
-    .save_png(&image, 16)
-    .unwrap();
+        256,
+        &image,
+    );
     let out = vernier()
         .args(["detect", "--period", "10", "--pose-3d"])
         .arg(&image)
@@ -314,7 +324,6 @@ fn detect_pose_3d_on_a_periodic_grid() {
 #[test]
 fn detect_pose_3d_on_an_hp_code_with_and_without_a_focal_length() {
     use vernier::layout::HpCodeLayout;
-    use vernier::render::{render, RenderOptions};
     // An HP code (P = 10, W = 33) tilted by beta = 0.2, gamma = -0.25 rad at the image centre,
     // orthographic render: the angles and their σ; with a focal length, z = pixel size × focal
     // (the tangent map at the optical axis is the same) and its σ.
@@ -329,19 +338,11 @@ fn detect_pose_3d_on_an_hp_code_with_and_without_a_focal_length() {
         gamma: -0.25,
         pixel_size: 0.9,
     };
-    let options = RenderOptions {
-        blur_sigma: 0.5,
-        bit_depth: Some(16),
-        ..RenderOptions::new(320, 320)
-    };
     let layout = HpCodeLayout::from_code_size(10.0, 33)
         .unwrap()
         .with_id(5)
         .unwrap();
-    render(&layout, &truth, &options)
-        .unwrap()
-        .save_png(&image, 16)
-        .unwrap();
+    save_render(&layout, &truth, 320, &image);
     let detect = |extra: &[&str]| {
         let out = vernier()
             .args(["detect", "--hpcode", "--period", "10", "--code-size", "33"])

@@ -709,6 +709,26 @@ mod tests {
         assert!(e.0.contains("depth"), "{e}");
     }
 
+    /// An 8-bit `size × size` frame of `layout` rendered at `truth`, blurred by `blur` px.
+    fn rendered_mono8(
+        layout: &dyn vernier::layout::Layout,
+        truth: &vernier::Pose,
+        size: usize,
+        blur: f64,
+    ) -> Image {
+        let options = RenderOptions {
+            blur_sigma: blur,
+            ..RenderOptions::new(size, size)
+        };
+        let image = render(layout, truth, &options).unwrap_or_else(|e| panic!("{e}"));
+        let data = image
+            .pixels()
+            .iter()
+            .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+            .collect();
+        mono8(size as u32, size as u32, data)
+    }
+
     #[test]
     fn pose_3d_publishes_tilts_with_their_covariance() {
         let layout =
@@ -722,17 +742,7 @@ mod tests {
             gamma: -0.1,
             pixel_size: 1.1,
         };
-        let options = RenderOptions {
-            blur_sigma: 0.6,
-            ..RenderOptions::new(512, 512)
-        };
-        let image = render(&layout, &truth, &options).unwrap_or_else(|e| panic!("{e}"));
-        let data = image
-            .pixels()
-            .iter()
-            .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
-            .collect();
-        let frame = mono8(512, 512, data);
+        let frame = rendered_mono8(&layout, &truth, 512, 0.6);
         let megarena = |pose_3d: bool| {
             params(&[
                 ("pattern_type", ParamValue::String("megarena".into())),
@@ -784,17 +794,7 @@ mod tests {
             gamma: -0.25,
             ..vernier::Pose::planar(0.0, 0.0, 0.0, 0.9)
         };
-        let options = RenderOptions {
-            blur_sigma: 0.5,
-            ..RenderOptions::new(320, 320)
-        };
-        let image = render(&layout, &truth, &options).unwrap_or_else(|e| panic!("{e}"));
-        let data = image
-            .pixels()
-            .iter()
-            .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
-            .collect();
-        let frame = mono8(320, 320, data);
+        let frame = rendered_mono8(&layout, &truth, 320, 0.5);
         let hp = |focal: f64| {
             params(&[
                 ("pattern_type", ParamValue::String("hpcode".into())),
