@@ -186,14 +186,9 @@ pub fn out_of_plane(
     period: f64,
     focal_px: Option<f64>,
 ) -> Result<OutOfPlanePose> {
+    crate::marker_tilt::check_focal_length(focal_px)?;
     let mut candidates = orthographic_candidates(planes, period, 0.0)?;
     if let Some(f) = focal_px {
-        if !(f.is_finite() && f > 0.0) {
-            return Err(Error::parameter(
-                "focal_px",
-                format!("must be > 0 pixels, got {f}"),
-            ));
-        }
         for c in candidates.iter_mut() {
             c.z = c.pixel_size * f;
         }

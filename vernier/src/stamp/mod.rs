@@ -995,10 +995,8 @@ impl StampDetector {
             };
             let (phase_std, yaw_std, field) = match field {
                 Some((_, fit)) => {
-                    let mut s = fit.phase_std_at(at.x, at.y);
-                    if found.orientation.matrix()[0][0] == 0 {
-                        s.swap(0, 1); // pattern x runs along plane 2
-                    }
+                    let s =
+                        in_pattern_order(found.orientation.matrix(), fit.phase_std_at(at.x, at.y));
                     (s, Some(fit.mean_direction_std()), Some(fit))
                 }
                 None => (d.phase_std, None, None),
@@ -1361,11 +1359,7 @@ impl StampDetector {
         };
         let decode_confidence = found.vote.clamp(0.0, 1.0);
         let out_of_plane = if self.params.pose_3d {
-            let phase_std = if r[0][0] == 0 {
-                [analysis.phase_std[1], analysis.phase_std[0]] // pattern x runs along plane 2
-            } else {
-                analysis.phase_std
-            };
+            let phase_std = in_pattern_order(r, analysis.phase_std);
             let window = analysis.size.0.min(analysis.size.1) as f64;
             let input = TiltInput::from_window([gx, gy], phase_std, window, from_center, mirrored);
             self.tilt(&input, found.bitmap)
@@ -1449,6 +1443,16 @@ pub fn frame_thickness(bitmap: &BitmapLayout) -> usize {
         t += 1;
     }
     t
+}
+
+/// Per-plane values `[plane 1, plane 2]` in pattern-axis order `[x, y]` under the matched
+/// orientation `r` (a signed permutation): swapped where pattern x runs along plane 2.
+fn in_pattern_order(r: [[i64; 2]; 2], values: [f64; 2]) -> [f64; 2] {
+    if r[0][0] == 0 {
+        [values[1], values[0]]
+    } else {
+        values
+    }
 }
 
 #[cfg(test)]
