@@ -8,6 +8,8 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$root"
 export VERNIER_DATA_DIR="${VERNIER_DATA_DIR:-$root/../shared/data}"
+# One build from scratch: incremental caches would only fill the disk.
+export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"
 if [ ! -d "$VERNIER_DATA_DIR" ]; then
     echo "test data not found at $VERNIER_DATA_DIR (set VERNIER_DATA_DIR)" >&2
     exit 1
