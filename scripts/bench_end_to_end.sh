@@ -4,7 +4,9 @@
 # not the process start). Prints, per case, the first frame of a one-shot run (plan and
 # buffer set-up included) and the median of the steady-state frames, with full detection on
 # every frame and with `--track` (full search every 30 frames), on 1 thread (`taskset -c 0`:
-# the detector uses the cores the process may run on) and on every core.
+# the detector uses the cores the process may run on) and on every core. Each case repeats one
+# frame, except the real HP sequence (`Image96`-`Image125`, each frame once: a first frame
+# there is that run's frame 0).
 #
 #   bash scripts/bench_end_to_end.sh [FRAMES]     (default 30 frames per case)
 #
@@ -84,31 +86,54 @@ print(f"{times[0]:.1f} {statistics.median(steady):.1f}")
 '
 }
 
-# One case: NAME, FILE, ORIGINAL (ms, the original measured on this kind of machine), flags.
+# One table row: NAME ORIGINAL MODE THREADS FIRST FILES..., with the flags in `flags`; FIRST
+# "-" takes the run's own frame 0 (a sequence: the first frame of the same run).
+row() {
+    local name=$1 original=$2 mode=$3 threads=$4 first=$5
+    shift 5
+    local extra=() cpus="0-$((threads - 1))" frame0 steady base="" ratio=""
+    [ "$mode" = track ] && extra=(--track)
+    read -r frame0 steady < <(timed "$vernier" "$cpus" "${flags[@]}" "${extra[@]}" "$@")
+    [ "$first" = - ] && first=$frame0
+    if [ -n "$baseline" ]; then
+        read -r _ base < <(timed "$baseline" "$cpus" "${flags[@]}" "${extra[@]}" "$@")
+        ratio=$(python3 -c "print(f'{$base / $steady:.2f}x')")
+    fi
+    local speedup
+    speedup=$(python3 -c "print(f'{float(\"$original\") / $steady:.0f}x')")
+    echo "| $name | $mode | $threads | $first | $steady | $original | $speedup |${baseline:+ $base | $ratio |}"
+}
+
+# One case, FILE repeated: NAME, FILE, ORIGINAL (ms, the original measured on this kind of
+# machine), flags.
 run_case() {
     local name=$1 file=$2 original=$3
     shift 3
+    flags=("$@")
     local list=()
     for i in $(seq "$frames"); do
         ln -sf "$file" "$work/frame_$i.pgm"
         list+=("$work/frame_$i.pgm")
     done
     for mode in full track; do
-        local extra=()
-        [ "$mode" = track ] && extra=(--track)
         for threads in 1 "$cores"; do
-            local cpus="0-$((threads - 1))"
             # One-shot first frame: a fresh process on one file.
-            read -r first _ < <(timed "$vernier" "$cpus" "$@" "$file" "$file")
-            read -r _ steady < <(timed "$vernier" "$cpus" "$@" "${extra[@]}" "${list[@]}")
-            local base="" ratio=""
-            if [ -n "$baseline" ]; then
-                read -r _ base < <(timed "$baseline" "$cpus" "$@" "${extra[@]}" "${list[@]}")
-                ratio=$(python3 -c "print(f'{$base / $steady:.2f}x')")
-            fi
-            local speedup
-            speedup=$(python3 -c "print(f'{float(\"$original\") / $steady:.0f}x')")
-            echo "| $name | $mode | $threads | $first | $steady | $original | $speedup |${baseline:+ $base | $ratio |}"
+            local first
+            read -r first _ < <(timed "$vernier" "0-$((threads - 1))" "$@" "$file" "$file")
+            row "$name" "$original" "$mode" "$threads" "$first" "${list[@]}"
+        done
+    done
+}
+
+# One case on the frames in `sequence`, each once: NAME, ORIGINAL (ms), flags.
+run_sequence_case() {
+    local name=$1 original=$2
+    shift 2
+    flags=("$@")
+    [ "${#sequence[@]}" -gt 2 ] || { echo "| $name | (frames missing) |"; return; }
+    for mode in full track; do
+        for threads in 1 "$cores"; do
+            row "$name" "$original" "$mode" "$threads" - "${sequence[@]}"
         done
     done
 }
@@ -125,6 +150,15 @@ echo "$rule"
 # from the same 8-bit PGM frames (docs/benchmarks.md).
 run_case "HP code 2456x2054" "$work/hp_full.pgm" 84 --hpcode --period 15.5 --code-size 33
 run_case "HP code 1024² crop" "$work/hp_crop.pgm" 58 --hpcode --period 15.5 --code-size 33
+# The real sequence (Image96-Image125, 30 frames of a moving part): a repeated frame is the
+# tracked fit's best case (its first sweep starts where the last converged, with no new noise).
+sequence=()
+for i in $(seq 96 125); do
+    [ -e "$data/hpcode/Image$i.png" ] || continue
+    to_pgm "$data/hpcode/Image$i.png" "$work/seq_$i.pgm"
+    sequence+=("$work/seq_$i.pgm")
+done
+run_sequence_case "HP code 2456x2054, real sequence" 84 --hpcode --period 15.5 --code-size 33
 run_case "Periodic 512²" "$work/periodic.pgm" 25.5 --pattern "$work/periodic.json"
 run_case "Megarena 1024²" "$work/megarena.pgm" 182 --pattern "$work/megarena.json"
 run_case "Stamp 1655x762" "$work/stamp.pgm" 239 --stamp --period 15 \

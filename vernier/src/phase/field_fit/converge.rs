@@ -20,10 +20,14 @@ pub(super) fn fit_pass(
     field.warp = warp;
     let mut model = match warm {
         // The start sweep measures the harmonics and centres the field: the warm model has
-        // both (the centre moved with the lattice).
+        // both (the centre moved with the lattice), and the weights that its final sweeps
+        // froze, moved with the nodes.
         Some(warm) => {
-            let (model, (x0, y0)) = warm.moved_to(&start, field.frame.2, mask)?;
+            let (mut model, (x0, y0)) = warm.moved_to(&start, field.frame.2, mask)?;
             field.frame = (x0, y0, field.frame.2);
+            if let Some(weights) = &warm.weights {
+                model.frozen = weights.moved_into(&field, mask.centroid_at(&start)?);
+            }
             model
         }
         None => {
@@ -69,7 +73,15 @@ pub(super) fn fit_pass(
             correct_plane(plane, d, field.frame);
         }
     }
-    let fit = finished_fit(model, &step, &field, start, converged, run.iterations);
+    let nodes = mask.centroid_at(&converged)?;
+    let fit = finished_fit(
+        model,
+        &step,
+        (&field, nodes),
+        start,
+        converged,
+        run.iterations,
+    );
     Some((fit, step.tilt_misfit))
 }
 
@@ -110,12 +122,13 @@ fn tie_harmonics(
 }
 
 /// The fit of a pass that converged on `model` (its planes moved to where the tilt leaves
-/// them at the centre) with last sweep `step`, from `start`, after `iterations` sweeps;
-/// `converged`: the planes the sweeps converged to, where the next frame's fit starts.
+/// them at the centre) over `field` with last sweep `step`, from `start`, after `iterations`
+/// sweeps; `converged`: the planes the sweeps converged to, where the next frame's fit starts,
+/// and `nodes` the mask's nodes' centroid there.
 fn finished_fit(
-    model: Model,
+    mut model: Model,
     step: &Step,
-    field: &FieldBox,
+    (field, nodes): (&FieldBox, Vector2<f64>),
     start: [PhasePlane; 2],
     converged: [PhasePlane; 2],
     iterations: usize,
@@ -123,6 +136,15 @@ fn finished_fit(
     let (perspective, tilt_weight) = step
         .tilt
         .map_or((None, 0.0), |t| (Some(t.perspective), t.weight));
+    let weights = (!model.frozen.is_empty()).then(|| CarriedWeights {
+        values: std::mem::take(&mut model.frozen),
+        width: field.cols.len(),
+        origin: Vector2::new(
+            field.cols.start as f64 - field.center.0,
+            field.rows.start as f64 - field.center.1,
+        ),
+        nodes,
+    });
     FieldFit {
         perspective,
         perspective_covariance: step.tilt.map(|t| t.covariance),
@@ -142,10 +164,10 @@ fn finished_fit(
         frame: field.frame,
         warm: Box::new(WarmModel {
             model: Model {
-                frozen: Vec::new(),
                 planes: converged,
                 ..model
             },
+            weights,
             frame: field.frame,
             taken: field.warp.map_or(Vector2::zeros(), |w| w.perspective),
             correction: [PhasePlane {
@@ -324,6 +346,8 @@ pub(super) fn converge(
             model.frozen = frozen_weights(&mut step, model.cutoff, mask, field.cols.len());
             run.frozen_at = Some(iteration);
         } else if run.frozen_at.is_none() {
+            // A warm first sweep that showed another field drops the carried weights too.
+            model.frozen.clear();
             set_robust_weights(model, &step, mask);
         }
         // With the weights frozen, the iterations solve one fixed problem and contract

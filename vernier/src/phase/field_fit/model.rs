@@ -90,7 +90,8 @@ pub(super) struct Model {
     /// Tukey weight of each pixel of the box (row-major), frozen after the robust iterations:
     /// the last iterations then solve one fixed weighted least-squares problem, at the
     /// quadratic rate of Gauss–Newton (reweighting every pixel each time, as IRLS does,
-    /// converges only linearly). Empty while the weights still move.
+    /// converges only linearly). Empty while the weights still move; on a tracked fit's first
+    /// sweep, the last frame's ([`CarriedWeights`]), NaN where they do not reach.
     pub(super) frozen: Vec<f32>,
 }
 

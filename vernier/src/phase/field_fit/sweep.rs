@@ -294,12 +294,16 @@ impl SweepSums {
         let (h, h_slope) = bank.evaluate();
         let gain = model.gain(p);
         let r = p.g - gain * h - model.linear_at(p);
-        let robust = match model.frozen.get(p.index) {
-            Some(&w) => w as f64,
-            None => model.robust(r),
-        };
+        // NaN: a pixel that a tracked fit's carried weights do not cover.
+        let frozen = model.frozen.get(p.index).filter(|w| !w.is_nan());
+        let robust = frozen.map_or_else(|| model.robust(r), |&w| w as f64);
         if let Some(slot) = self.frozen.get_mut(p.index) {
-            *slot = robust as f32;
+            // The weights freeze on this sweep's own judgment: a tracked fit's first sweep
+            // solves on the last frame's weights but freezes this frame's.
+            *slot = match frozen {
+                Some(_) => model.robust(r),
+                None => robust,
+            } as f32;
             if let (Some(q), Some(c)) = (
                 self.frozen_residuals.get_mut(p.index),
                 self.frozen_cells.get_mut(p.index),

@@ -383,3 +383,40 @@ fn layout_weight_is_a_partition_of_unity() {
     assert_eq!(at([0.0, 0.0]), 0.0);
     assert!((at([0.5, 0.0]) - 0.5).abs() < 1e-12 && at([1.0, 0.0]) == 1.0);
 }
+
+#[test]
+fn carried_weights_move_with_the_nodes_to_whole_pixels() {
+    // A 4×3 box at frame position (−2, −1) whose nodes sat at (0, 0); weights 0..12.
+    let carried = CarriedWeights {
+        values: (0..12).map(|v| v as f32).collect(),
+        width: 4,
+        origin: Vector2::new(-2.0, -1.0),
+        nodes: Vector2::zeros(),
+    };
+    // The next box: same size, one pixel right (its pixel (0, 0) at frame (−1, −1)), the
+    // nodes moved 1.2 px right and 0.3 px down.
+    let field = FieldBox {
+        cols: 9..13,
+        rows: 9..12,
+        center: (10.0, 10.0),
+        frame: (0.0, 0.0, 2.0),
+        clearance: Vec::new(),
+        spans: Vec::new(),
+        warp: None,
+    };
+    let moved = carried.moved_into(&field, Vector2::new(1.2, 0.3));
+    // Shift (−1, −1) − (1.2, 0.3) − (−2, −1) = (−0.2, −0.3): rounded to none; the box moved
+    // with the nodes, so each pixel keeps its own weight.
+    assert_eq!(moved, carried.values);
+    // The nodes moved two pixels right instead: each pixel takes the weight from one pixel
+    // to its left (the box moved one), and the first column is new (NaN).
+    let moved = carried.moved_into(&field, Vector2::new(2.0, 0.0));
+    for (k, w) in moved.iter().enumerate() {
+        let (row, col) = (k / 4, k % 4);
+        if col == 0 {
+            assert!(w.is_nan(), "pixel {k}: {w}");
+        } else {
+            assert_eq!(*w, carried.values[row * 4 + col - 1], "pixel {k}");
+        }
+    }
+}

@@ -9,9 +9,11 @@ use super::*;
 /// the cells' weights, the tilt carried in the phase model).
 #[derive(Clone, Debug)]
 pub(super) struct WarmModel {
-    /// The model, its planes in the image frame (input pixels); no frozen weights (they are
-    /// per pixel of a box that moves).
+    /// The model, its planes in the image frame (input pixels); its frozen weights are in
+    /// `weights` (per pixel of a box that moves).
     pub(super) model: Model,
+    /// The final sweeps' frozen robust weights, where they lie; `None` without them.
+    pub(super) weights: Option<CarriedWeights>,
     /// The field centre `(x₀, y₀)` from the drawn nodes' centroid
     /// ([`NodeMask::centroid_at`]; the same nodes in any numbering of them), and the
     /// half-size `s` of the normalised coordinates, input pixels.
@@ -35,6 +37,63 @@ pub(super) struct WarmModel {
 pub(super) const WARM_RESIDUAL_GROWTH: f64 = 1.25;
 
 pub(super) const WARM_INLIER_DROP: f64 = 0.02;
+
+/// A fit's frozen robust weights ([`Model::frozen`]) and where they lie, so that the next
+/// frame's first sweep solves the problem the last frame's final sweeps solved, moved with the
+/// marker: a first sweep that judged the weights afresh would step to that judgment's answer
+/// (the outliers' grown extents are set only once the weights freeze, [`frozen_weights`]) and
+/// the next sweep back, a sweep spent for nothing.
+#[derive(Clone, Debug)]
+pub(super) struct CarriedWeights {
+    /// Row-major over the fit's box, `width` pixels a row.
+    pub(super) values: Vec<f32>,
+    pub(super) width: usize,
+    /// The frame position (the fit's frame: image frame between frames) of the box's pixel
+    /// `(0, 0)` and of the mask's nodes' centroid at the converged planes.
+    pub(super) origin: Vector2<f64>,
+    pub(super) nodes: Vector2<f64>,
+}
+
+impl CarriedWeights {
+    /// These weights with their positions mapped by `to` (a change of frame).
+    pub(super) fn mapped(&self, to: impl Fn(Vector2<f64>) -> Vector2<f64>) -> CarriedWeights {
+        CarriedWeights {
+            origin: to(self.origin),
+            nodes: to(self.nodes),
+            ..self.clone()
+        }
+    }
+
+    /// The weights of `field`'s pixels (row-major) once the marker's nodes have moved to
+    /// `nodes` (both in the sub-image's frame): each pixel takes the weight of the pixel that
+    /// lay where it lies less the nodes' move, rounded to whole pixels; NaN where that pixel
+    /// was outside the last box (the first sweep judges those afresh).
+    pub(super) fn moved_into(&self, field: &FieldBox, nodes: Vector2<f64>) -> Vec<f32> {
+        let origin = Vector2::new(
+            field.cols.start as f64 - field.center.0,
+            field.rows.start as f64 - field.center.1,
+        );
+        let shift = origin - (nodes - self.nodes) - self.origin;
+        let (dx, dy) = (shift.x.round() as i64, shift.y.round() as i64);
+        let height = self.values.len() / self.width.max(1);
+        let (width, rows) = (field.cols.len(), field.rows.len());
+        let mut moved = vec![f32::NAN; width * rows];
+        for (row, out) in moved.chunks_exact_mut(width).enumerate() {
+            let old_row = row as i64 + dy;
+            if old_row < 0 || old_row >= height as i64 {
+                continue;
+            }
+            let from = old_row as usize * self.width;
+            for (col, w) in out.iter_mut().enumerate() {
+                let old_col = col as i64 + dx;
+                if old_col >= 0 && (old_col as usize) < self.width {
+                    *w = self.values[from + old_col as usize];
+                }
+            }
+        }
+        moved
+    }
+}
 
 impl WarmModel {
     /// Whether `step`, the first sweep of a tracked frame on this model's robust weights, shows
@@ -60,6 +119,8 @@ impl WarmModel {
         });
         let (dx, dy, s) = self.frame;
         warm.frame = (dx / f, dy / f, s / f);
+        let to_sub = |v: Vector2<f64>| Vector2::new((v.x - offset[0]) / f, (v.y - offset[1]) / f);
+        warm.weights = self.weights.as_ref().map(|w| w.mapped(to_sub));
         Some(warm)
     }
 
