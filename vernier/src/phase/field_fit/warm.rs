@@ -78,7 +78,7 @@ impl CarriedWeights {
         let height = self.values.len() / self.width.max(1);
         let (width, rows) = (field.cols.len(), field.rows.len());
         let mut moved = vec![f32::NAN; width * rows];
-        for (row, out) in moved.chunks_exact_mut(width).enumerate() {
+        for (row, out) in moved.chunks_exact_mut(width.max(1)).enumerate() {
             let old_row = row as i64 + dy;
             if old_row < 0 || old_row >= height as i64 {
                 continue;
