@@ -548,9 +548,6 @@ fn uncertainty_counts_the_rounding_of_clean_8_bit_images() {
     assert!(failures.is_empty(), "{failures:#?}");
 }
 
-/// Frames of the tracked render sequence.
-const TRACKED_FRAMES: usize = 200;
-
 /// Tracking (docs/design.md#tracked-field-fit): a sequence of noisy renders of the HP code
 /// moving and turning (up to 4 px and 0.01 rad from its start, 1 % noise, fresh noise each
 /// frame), detected frame by frame with `detect_next` (the whole-field fit warm-started from
@@ -560,7 +557,19 @@ const TRACKED_FRAMES: usize = 200;
 /// cold fit of the same frame.
 #[test]
 fn tracked_hp_code_sequence_is_as_precise_as_cold_fits() {
-    let case = hpcode_case();
+    check_tracked(hpcode_case(), 200, 14);
+}
+
+/// [`tracked_hp_code_sequence_is_as_precise_as_cold_fits`] for the turned stamp (stamps are
+/// tracked too; a stamp's field is about four times an HP code's, so fewer frames).
+#[test]
+fn tracked_stamp_sequence_is_as_precise_as_cold_fits() {
+    check_tracked(stamp_case(), 60, 15);
+}
+
+/// The tracked-sequence checks on `frames` noisy renders of `case` in motion, noise seed
+/// `seed`.
+fn check_tracked(case: Case, frames: usize, seed: u64) {
     let px = case.truth.pixel_size;
     let base = case.truth.camera_from_pattern().translation.vector / px;
     let (unit_bound, _) = crlb(&case, case.window_corner());
@@ -575,10 +584,10 @@ fn tracked_hp_code_sequence_is_as_precise_as_cold_fits() {
         Detector::new(config.clone()).unwrap(),
         Detector::new(config).unwrap(),
     );
-    let mut rng = SmallRng::seed_from_u64(14);
+    let mut rng = SmallRng::seed_from_u64(seed);
     let (mut errors, mut cold_errors) = ([vec![], vec![], vec![]], [vec![], vec![], vec![]]);
     let mut worst: f64 = 0.0;
-    for k in 0..TRACKED_FRAMES {
+    for k in 0..frames {
         let t = k as f64;
         let origin = Vector2::new(
             base.x + 4.0 * (t / 7.0).sin(),
@@ -618,11 +627,11 @@ fn tracked_hp_code_sequence_is_as_precise_as_cold_fits() {
     let ratio = [0, 1, 2].map(|k| rms_tracked[k] / bound[k]);
     let against_cold = [0, 1, 2].map(|k| rms_tracked[k] / rms_cold[k]);
     eprintln!(
-        "tracked HP code, {TRACKED_FRAMES} frames ({} tracked): RMS/CRLB (x, y, alpha) \
-         {ratio:.2?}, tracked/cold RMS {against_cold:.3?}, largest |tracked − cold| {worst:.2} σ",
-        counts.tracked
+        "tracked {}, {frames} frames ({} tracked): RMS/CRLB (x, y, alpha) {ratio:.2?}, \
+         tracked/cold RMS {against_cold:.3?}, largest |tracked − cold| {worst:.2} σ",
+        case.name, counts.tracked
     );
-    assert!(counts.tracked as usize >= TRACKED_FRAMES - 1, "{counts:?}");
+    assert!(counts.tracked as usize >= frames - 1, "{counts:?}");
     assert!(
         ratio.iter().zip(TARGET).all(|(r, t)| *r <= t),
         "RMS/CRLB {ratio:?}"
