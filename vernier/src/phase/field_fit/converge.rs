@@ -23,10 +23,11 @@ pub(super) fn fit_pass(
         // both (the centre moved with the lattice), and the weights that its final sweeps
         // froze, moved with the nodes.
         Some(warm) => {
-            let (mut model, (x0, y0)) = warm.moved_to(&start, field.frame.2, mask)?;
+            let nodes = mask.centroid_at(&start)?;
+            let (mut model, (x0, y0)) = warm.moved_to(&start, field.frame.2, nodes)?;
             field.frame = (x0, y0, field.frame.2);
             if let Some(weights) = &warm.weights {
-                model.frozen = weights.moved_into(&field, mask.centroid_at(&start)?);
+                model.frozen = weights.moved_into(&field, nodes);
             }
             model
         }
@@ -139,11 +140,7 @@ fn finished_fit(
     let weights = (!model.frozen.is_empty()).then(|| CarriedWeights {
         values: std::mem::take(&mut model.frozen),
         width: field.cols.len(),
-        origin: Vector2::new(
-            field.cols.start as f64 - field.center.0,
-            field.rows.start as f64 - field.center.1,
-        ),
-        nodes,
+        origin_from_nodes: field.origin() - nodes,
     });
     FieldFit {
         perspective,

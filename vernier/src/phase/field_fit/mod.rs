@@ -687,8 +687,7 @@ impl SubImage {
         let nodes = mask.centroid_at(&fit.planes)?;
         fit.warm.frame = (fit.frame.0 - nodes.x, fit.frame.1 - nodes.y, fit.frame.2);
         fit.warm.factor = self.factor;
-        let to_image = |v: Vector2<f64>| Vector2::new(f * v.x + offset[0], f * v.y + offset[1]);
-        fit.warm.weights = fit.warm.weights.map(|w| w.mapped(to_image));
+        fit.warm.weights = fit.warm.weights.map(|w| w.scaled(f));
         Some(fit)
     }
 }

@@ -141,6 +141,14 @@ impl FieldBox {
         })
     }
 
+    /// The frame position of the box's pixel `(0, 0)`, pixels.
+    pub(super) fn origin(&self) -> Vector2<f64> {
+        Vector2::new(
+            self.cols.start as f64 - self.center.0,
+            self.rows.start as f64 - self.center.1,
+        )
+    }
+
     /// Fills [`FieldBox::clearance`] for `mask` at the lattice coordinates of `planes`.
     pub(super) fn set_clearance(&mut self, planes: &[PhasePlane; 2], mask: &NodeMask) {
         let mut clearance = Vec::with_capacity(self.rows.len() * self.cols.len());

@@ -390,8 +390,7 @@ fn carried_weights_move_with_the_nodes_to_whole_pixels() {
     let carried = CarriedWeights {
         values: (0..12).map(|v| v as f32).collect(),
         width: 4,
-        origin: Vector2::new(-2.0, -1.0),
-        nodes: Vector2::zeros(),
+        origin_from_nodes: Vector2::new(-2.0, -1.0),
     };
     // The next box: same size, one pixel right (its pixel (0, 0) at frame (−1, −1)), the
     // nodes moved 1.2 px right and 0.3 px down.

@@ -48,32 +48,26 @@ pub(super) struct CarriedWeights {
     /// Row-major over the fit's box, `width` pixels a row.
     pub(super) values: Vec<f32>,
     pub(super) width: usize,
-    /// The frame position (the fit's frame: image frame between frames) of the box's pixel
-    /// `(0, 0)` and of the mask's nodes' centroid at the converged planes.
-    pub(super) origin: Vector2<f64>,
-    pub(super) nodes: Vector2<f64>,
+    /// Where the box's pixel `(0, 0)` lay from the mask's nodes' centroid at the converged
+    /// planes, pixels of the fit's frame (input pixels between frames).
+    pub(super) origin_from_nodes: Vector2<f64>,
 }
 
 impl CarriedWeights {
-    /// These weights with their positions mapped by `to` (a change of frame).
-    pub(super) fn mapped(&self, to: impl Fn(Vector2<f64>) -> Vector2<f64>) -> CarriedWeights {
+    /// These weights in a frame of `scale` times as many pixels per input pixel.
+    pub(super) fn scaled(&self, scale: f64) -> CarriedWeights {
         CarriedWeights {
-            origin: to(self.origin),
-            nodes: to(self.nodes),
+            origin_from_nodes: self.origin_from_nodes * scale,
             ..self.clone()
         }
     }
 
     /// The weights of `field`'s pixels (row-major) once the marker's nodes have moved to
-    /// `nodes` (both in the sub-image's frame): each pixel takes the weight of the pixel that
-    /// lay where it lies less the nodes' move, rounded to whole pixels; NaN where that pixel
-    /// was outside the last box (the first sweep judges those afresh).
+    /// `nodes` (the sub-image's frame): each pixel takes the weight of the pixel that lay
+    /// where it lies less the nodes' move, rounded to whole pixels; NaN where that pixel was
+    /// outside the last box (the first sweep judges those afresh).
     pub(super) fn moved_into(&self, field: &FieldBox, nodes: Vector2<f64>) -> Vec<f32> {
-        let origin = Vector2::new(
-            field.cols.start as f64 - field.center.0,
-            field.rows.start as f64 - field.center.1,
-        );
-        let shift = origin - (nodes - self.nodes) - self.origin;
+        let shift = field.origin() - nodes - self.origin_from_nodes;
         let (dx, dy) = (shift.x.round() as i64, shift.y.round() as i64);
         let height = self.values.len() / self.width.max(1);
         let (width, rows) = (field.cols.len(), field.rows.len());
@@ -119,23 +113,22 @@ impl WarmModel {
         });
         let (dx, dy, s) = self.frame;
         warm.frame = (dx / f, dy / f, s / f);
-        let to_sub = |v: Vector2<f64>| Vector2::new((v.x - offset[0]) / f, (v.y - offset[1]) / f);
-        warm.weights = self.weights.as_ref().map(|w| w.mapped(to_sub));
+        warm.weights = self.weights.as_ref().map(|w| w.scaled(1.0 / f));
         Some(warm)
     }
 
-    /// This model for a fit from planes `start` of the nodes of `mask` over a field whose
-    /// normalised coordinates have half-size `scale` (one frame for all): its centre where it
-    /// was from the nodes' centroid, and the linear terms' slopes rescaled to `scale`. `None`
-    /// when `start` is singular.
+    /// This model for a fit from planes `start`, where the mask's nodes' centroid lies at
+    /// `nodes` ([`NodeMask::centroid_at`]), over a field whose normalised coordinates have
+    /// half-size `scale` (one frame for all): its centre where it was from the nodes'
+    /// centroid, and the linear terms' slopes rescaled to `scale`. `None` when not finite.
     pub(super) fn moved_to(
         &self,
         start: &[PhasePlane; 2],
         scale: f64,
-        mask: &NodeMask,
+        nodes: Vector2<f64>,
     ) -> Option<(Model, (f64, f64))> {
         let (dx, dy, s0) = self.frame;
-        let at = mask.centroid_at(start)? + Vector2::new(dx, dy);
+        let at = nodes + Vector2::new(dx, dy);
         let mut model = self.model.clone();
         model.planes = *start;
         let ratio = scale / s0;
