@@ -163,23 +163,27 @@ pub(crate) fn read_id(image: &GreyImage, polarity: Polarity, grid: &DotGrid) -> 
         return None;
     }
     // Top row: ID dots (0, n−5−k); present references (1, c); background between them.
-    let top = read_edge(image, polarity, grid, Edge::Top, true)?;
-    let left = read_edge(image, polarity, grid, Edge::Left, true)?;
+    let top = EdgeSamples::take(image, polarity, grid, Edge::Top)?;
+    let left = EdgeSamples::take(image, polarity, grid, Edge::Left)?;
+    let (top_signed, left_signed) = (top.signed(), left.signed());
+    // Which edge holds the ID needs the dots' levels only; occluders are judged on that edge
+    // alone (the complete edge's margin is never used), the costliest part of a reading.
+    let (top_bits, left_bits) = (top.bits(&top_signed, false), left.bits(&left_signed, false));
     // Seen from the front the left column is complete and the top row holds the ID; mirrored,
     // the other way round: the edge missing fewer dots is the complete one. On a tie (ID 0,
     // or a spoiled dot), front unless the left column misses a dot and the top row is the
     // more clearly complete edge (a marker with ID 0 reads the same both ways).
-    let mirrored = match left.missing().cmp(&top.missing()) {
+    let mirrored = match left_bits.missing().cmp(&top_bits.missing()) {
         std::cmp::Ordering::Less => false,
         std::cmp::Ordering::Greater => true,
         std::cmp::Ordering::Equal => {
-            left.completeness < 0.0 && top.completeness > left.completeness
+            left_bits.completeness < 0.0 && top_bits.completeness > left_bits.completeness
         }
     };
     let (id_edge, complete_edge) = if mirrored {
-        (&left, &top)
+        (left.bits(&left_signed, true), &top_bits)
     } else {
-        (&top, &left)
+        (top.bits(&top_signed, true), &left_bits)
     };
     // One dot of the complete edge spoiled by dust or hair is tolerated when the ID edge
     // misses enough dots that the two edges cannot be told apart wrongly (1 against ≥ 3);
@@ -249,33 +253,7 @@ fn read_edge(
     judge_occluders: bool,
 ) -> Option<EdgeBits> {
     let samples = EdgeSamples::take(image, polarity, grid, edge)?;
-    // Each dot against its own neighbourhood (the three reference dots below it and the four
-    // gaps beside those), so that uneven illumination along the edge does not eat the margin.
-    let signed: Vec<f64> = (0..samples.levels.len())
-        .map(|i| samples.signed_within(i, 1, samples.levels[i]))
-        .collect();
-    let (occlusion, empty) = match judge_occluders {
-        true => (samples.occlusion_margins(&signed), samples.empty_level()),
-        false => (vec![1.0; signed.len()], -1.0),
-    };
-    log::trace!(
-        "edge {edge:?} dot margins {signed:.2?}, occlusion margins {occlusion:.2?}, empty {empty:.2}"
-    );
-    // levels[i] is dot column 4 + i; bit k is dot column n − 5 − k.
-    let bits: Vec<bool> = signed.iter().rev().map(|&s| s < 0.0).collect();
-    let margin = signed
-        .iter()
-        .zip(&occlusion)
-        .map(|(&s, &o)| bit_margin(s, empty).min(o.clamp(0.0, 1.0)))
-        .fold(1.0f64, f64::min);
-    let mut sorted = signed.clone();
-    sorted.sort_by(f64::total_cmp);
-    Some(EdgeBits {
-        bits,
-        margin,
-        completeness: sorted.first().copied().unwrap_or(f64::INFINITY),
-        completeness_but_one: sorted.get(1).copied().unwrap_or(f64::INFINITY),
-    })
+    Some(samples.bits(&samples.signed(), judge_occluders))
 }
 
 /// The levels [`read_edge`] samples along one edge, dot column `4 + i` at index `i`
@@ -299,6 +277,44 @@ struct EdgeSamples<'a> {
 }
 
 impl<'a> EdgeSamples<'a> {
+    /// Each dot's level against its own neighbourhood (the three reference dots below it and
+    /// the four gaps beside those), so that uneven illumination along the edge does not eat
+    /// the margin: half contrasts, ≥ 0 for a present dot.
+    fn signed(&self) -> Vec<f64> {
+        (0..self.levels.len())
+            .map(|i| self.signed_within(i, 1, self.levels[i]))
+            .collect()
+    }
+
+    /// The edge's bits from its dots' `signed` levels; with `judge_occluders` (the edge that
+    /// carries the ID), each dot's margin also says how clearly no occluder made its reading
+    /// ([`EdgeSamples::occlusion_margins`]).
+    fn bits(&self, signed: &[f64], judge_occluders: bool) -> EdgeBits {
+        let (occlusion, empty) = match judge_occluders {
+            true => (self.occlusion_margins(signed), self.empty_level()),
+            false => (vec![1.0; signed.len()], -1.0),
+        };
+        log::trace!(
+            "edge {:?} dot margins {signed:.2?}, occlusion margins {occlusion:.2?}, empty {empty:.2}",
+            self.edge
+        );
+        // levels[i] is dot column 4 + i; bit k is dot column n − 5 − k.
+        let bits: Vec<bool> = signed.iter().rev().map(|&s| s < 0.0).collect();
+        let margin = signed
+            .iter()
+            .zip(&occlusion)
+            .map(|(&s, &o)| bit_margin(s, empty).min(o.clamp(0.0, 1.0)))
+            .fold(1.0f64, f64::min);
+        let mut sorted = signed.to_vec();
+        sorted.sort_by(f64::total_cmp);
+        EdgeBits {
+            bits,
+            margin,
+            completeness: sorted.first().copied().unwrap_or(f64::INFINITY),
+            completeness_but_one: sorted.get(1).copied().unwrap_or(f64::INFINITY),
+        }
+    }
+
     /// Samples `edge` of `grid`; `None` when a sample lies outside the image or the reference
     /// dots do not stand out of the gaps.
     fn take(
@@ -1079,10 +1095,13 @@ fn excess(
     let references: Vec<f64> = (0..signed.len()).filter_map(reference).collect();
     let (median, allowance) = median_and_allowance(&references);
     (0..signed.len())
-        .map(|i| match (signed[i] >= 0.0, own(i)) {
-            // NaN (no reference judged) fails the comparison: not judged either.
-            (true, Some(level)) if !median.is_nan() => level - median - allowance,
-            _ => f64::NEG_INFINITY,
+        .map(|i| {
+            // Only present dots are judged, and NaN (no reference judged) judges none.
+            let judged = signed[i] >= 0.0 && !median.is_nan();
+            match judged.then(|| own(i)).flatten() {
+                Some(level) => level - median - allowance,
+                None => f64::NEG_INFINITY,
+            }
         })
         .collect()
 }

@@ -55,6 +55,31 @@ pub(crate) fn sine_cubed(n: usize) -> Vec<f64> {
         .collect()
 }
 
+/// Samples between exact seeds of [`phasors`]' rotor: each product adds ~1e-16 of rounding,
+/// so a run drifts by ~1e-15 at most, far below the f32 kernels' rounding.
+const PHASOR_RESEED: usize = 16;
+
+/// `e^{i·freq·t}` for each `t` of `ts`, evenly spaced (pixel coordinates): a rotor multiplied
+/// by `e^{i·freq·Δt}` from sample to sample and seeded exactly every [`PHASOR_RESEED`], one
+/// sine and cosine per run of samples instead of one per sample (they were a fifth of a
+/// periodic frame's time).
+fn phasors(freq: f64, ts: &[f64]) -> impl Iterator<Item = Cplx> + '_ {
+    let dt = match ts {
+        [a, b, ..] => b - a,
+        _ => 0.0,
+    };
+    let step = Cplx::from_polar(1.0, freq * dt);
+    let mut rotor = Cplx::default();
+    ts.iter().enumerate().map(move |(k, &t)| {
+        rotor = if k % PHASOR_RESEED == 0 {
+            Cplx::from_polar(1.0, freq * t)
+        } else {
+            rotor * step
+        };
+        rotor
+    })
+}
+
 /// Reusable buffers of the refinement for one image size.
 pub(crate) struct RefinePlan {
     rows: usize,
@@ -80,8 +105,9 @@ impl RefinePlan {
     fn set_kernels(&mut self, planes: &[PhasePlane; 2], xs: &[f64]) {
         let cols = self.cols;
         for (l, plane) in planes.iter().enumerate() {
-            for (x, (&w, &t)) in self.wx.iter().zip(xs).enumerate() {
-                let e = Cplx::from_polar(w, -plane.a * t);
+            let rotors = phasors(-plane.a, xs);
+            for (x, ((&w, &t), rotor)) in self.wx.iter().zip(xs).zip(rotors).enumerate() {
+                let e = rotor * w;
                 let ex = e * t;
                 self.kernels[(4 * l) * cols + x] = e.re as f32;
                 self.kernels[(4 * l + 1) * cols + x] = e.im as f32;
@@ -96,10 +122,11 @@ impl RefinePlan {
     fn data_moments(&self, pixels: &[f32], planes: &[PhasePlane; 2], ys: &[f64]) -> [[Cplx; 3]; 2] {
         let cols = self.cols;
         let mut m = [[Cplx::default(); 3]; 2];
+        let mut rotors = planes.map(|p| phasors(-p.b, ys));
         for (j, row) in pixels.chunks_exact(cols).enumerate() {
             let d = row_dots(row, &self.kernels, cols);
-            for (l, plane) in planes.iter().enumerate() {
-                let f = Cplx::from_polar(self.wy[j], -plane.b * ys[j]);
+            for (l, rotor) in rotors.iter_mut().enumerate() {
+                let f = rotor.next().unwrap_or_default() * self.wy[j];
                 let s0 = Cplx::new(d[4 * l], d[4 * l + 1]);
                 let s1 = Cplx::new(d[4 * l + 2], d[4 * l + 3]);
                 m[l][0] += f * s0;
@@ -216,15 +243,16 @@ const COMBOS: [(i32, i32); 7] = [(0, 0), (1, 0), (0, 1), (2, 0), (0, 2), (1, 1),
 struct CombinationSums {
     x: [[Cplx; 3]; 7],
     y: [[Cplx; 3]; 7],
-    offset: [f64; 7],
+    /// [`offset_phasors`].
+    offset: [Cplx; 7],
 }
 
 impl CombinationSums {
     fn new(planes: &[PhasePlane; 2], wx: &[f64], xs: &[f64], wy: &[f64], ys: &[f64]) -> Self {
         let axis = |w: &[f64], t: &[f64], freq: f64| {
             let mut s = [Cplx::default(); 3];
-            for (wi, ti) in w.iter().zip(t) {
-                let e = Cplx::from_polar(*wi, freq * ti);
+            for ((wi, ti), rotor) in w.iter().zip(t).zip(phasors(freq, t)) {
+                let e = rotor * *wi;
                 s[0] += e;
                 s[1] += e * ti;
                 s[2] += e * ti * ti;
@@ -234,27 +262,43 @@ impl CombinationSums {
         let mut sums = CombinationSums {
             x: [[Cplx::default(); 3]; 7],
             y: [[Cplx::default(); 3]; 7],
-            offset: [0.0; 7],
+            offset: offset_phasors(planes),
         };
         for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
             let (n0, n1) = (n0 as f64, n1 as f64);
             sums.x[k] = axis(wx, xs, n0 * planes[0].a + n1 * planes[1].a);
             sums.y[k] = axis(wy, ys, n0 * planes[0].b + n1 * planes[1].b);
-            sums.offset[k] = n0 * planes[0].c + n1 * planes[1].c;
         }
         sums
     }
 
     /// `Σ w(x, y)·x^px·y^py·e^{i(n0·φ0 + n1·φ1)}` over the image.
-    fn get(&self, (n0, n1): (i32, i32), px: usize, py: usize) -> Cplx {
-        for (k, &c) in COMBOS.iter().enumerate() {
-            if c == (n0, n1) || c == (-n0, -n1) {
-                let v = Cplx::from_polar(1.0, self.offset[k]) * self.x[k][px] * self.y[k][py];
-                return if c == (n0, n1) { v } else { v.conj() };
-            }
-        }
-        Cplx::default() // unreachable for the combinations used below
+    fn get(&self, combination: (i32, i32), px: usize, py: usize) -> Cplx {
+        of_combination(combination, |k| {
+            self.offset[k] * self.x[k][px] * self.y[k][py]
+        })
     }
+}
+
+/// `value(k)` of the [`COMBOS`] entry `k` that is `(n0, n1)`, or its conjugate where the entry
+/// is `(−n0, −n1)` (a sum of `e^{−iφ}` is the conjugate of that of `e^{iφ}`); zero for a
+/// combination not listed (none of those used).
+fn of_combination((n0, n1): (i32, i32), value: impl Fn(usize) -> Cplx) -> Cplx {
+    for (k, &c) in COMBOS.iter().enumerate() {
+        if c == (n0, n1) {
+            return value(k);
+        }
+        if c == (-n0, -n1) {
+            return value(k).conj();
+        }
+    }
+    Cplx::default()
+}
+
+/// `e^{i(n0·c0 + n1·c1)}` for each combination of [`COMBOS`]: the planes' offsets' part of
+/// the sums.
+fn offset_phasors(planes: &[PhasePlane; 2]) -> [Cplx; 7] {
+    COMBOS.map(|(n0, n1)| Cplx::from_polar(1.0, n0 as f64 * planes[0].c + n1 as f64 * planes[1].c))
 }
 
 /// One non-constant basis function of the model: `p(x, y)·Re(z·e^{iφ_lobe})`.
@@ -526,18 +570,9 @@ pub(crate) fn refine_weighted(
         iterations += 1;
         buffers.set_kernels(&planes, &xs);
         let (m, table) = buffers.moments(pixels, weights, plan, &planes, &ys);
-        let offsets: Vec<f64> = COMBOS
-            .iter()
-            .map(|&(n0, n1)| n0 as f64 * planes[0].c + n1 as f64 * planes[1].c)
-            .collect();
-        let weighted_exp = |(n0, n1): (i32, i32), px: usize, py: usize| -> Cplx {
-            for (k, &c) in COMBOS.iter().enumerate() {
-                if c == (n0, n1) || c == (-n0, -n1) {
-                    let v = Cplx::from_polar(1.0, offsets[k]) * table[k][px][py];
-                    return if c == (n0, n1) { v } else { v.conj() };
-                }
-            }
-            Cplx::default()
+        let offsets = offset_phasors(&planes);
+        let weighted_exp = |combination: (i32, i32), px: usize, py: usize| -> Cplx {
+            of_combination(combination, |k| offsets[k] * table[k][px][py])
         };
         let moments = Moments {
             sum_w,
@@ -632,8 +667,7 @@ impl WeightedBuffers {
     fn set_kernels(&mut self, planes: &[PhasePlane; 2], xs: &[f64]) {
         let cols = xs.len();
         for (l, plane) in planes.iter().enumerate() {
-            for (x, &t) in xs.iter().enumerate() {
-                let e = Cplx::from_polar(1.0, -plane.a * t);
+            for (x, (&t, e)) in xs.iter().zip(phasors(-plane.a, xs)).enumerate() {
                 for (r, v) in [e.re, e.im, e.re * t, e.im * t].into_iter().enumerate() {
                     self.data_kernels[(4 * l + r) * cols + x] = v as f32;
                 }
@@ -641,8 +675,7 @@ impl WeightedBuffers {
         }
         for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
             let alpha = n0 as f64 * planes[0].a + n1 as f64 * planes[1].a;
-            for (x, &t) in xs.iter().enumerate() {
-                let e = Cplx::from_polar(1.0, alpha * t);
+            for (x, (&t, e)) in xs.iter().zip(phasors(alpha, xs)).enumerate() {
                 for i in 0..3 {
                     let v = e * t.powi(i as i32);
                     self.gram_kernels[((k * 3 + i) * 2) * cols + x] = v.re as f32;
@@ -665,6 +698,9 @@ impl WeightedBuffers {
         let (rows, cols) = (plan.rows, plan.cols);
         let mut m = [[Cplx::default(); 3]; 2];
         let mut table: GramTable = [[[Cplx::default(); 3]; 3]; 7];
+        let mut data_rotors = planes.map(|p| phasors(-p.b, ys));
+        let mut gram_rotors =
+            COMBOS.map(|(n0, n1)| phasors(n0 as f64 * planes[0].b + n1 as f64 * planes[1].b, ys));
         for j in 0..rows {
             let (y, wy) = (ys[j], plan.wy[j]);
             for x in 0..cols {
@@ -673,8 +709,8 @@ impl WeightedBuffers {
                 self.data_row[x] = w * pixels[j * cols + x];
             }
             dots(&self.data_row, &self.data_kernels, &mut self.data_dots);
-            for (l, plane) in planes.iter().enumerate() {
-                let f = Cplx::from_polar(wy, -plane.b * y);
+            for (l, rotor) in data_rotors.iter_mut().enumerate() {
+                let f = rotor.next().unwrap_or_default() * wy;
                 let s0 = Cplx::new(self.data_dots[4 * l], self.data_dots[4 * l + 1]);
                 let s1 = Cplx::new(self.data_dots[4 * l + 2], self.data_dots[4 * l + 3]);
                 m[l][0] += f * s0;
@@ -682,9 +718,8 @@ impl WeightedBuffers {
                 m[l][2] += f * s0 * y;
             }
             dots(&self.weight_row, &self.gram_kernels, &mut self.gram_dots);
-            for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
-                let beta = n0 as f64 * planes[0].b + n1 as f64 * planes[1].b;
-                let f = Cplx::from_polar(wy, beta * y);
+            for (k, rotor) in gram_rotors.iter_mut().enumerate() {
+                let f = rotor.next().unwrap_or_default() * wy;
                 for i in 0..3 {
                     let gd = &self.gram_dots;
                     let s = Cplx::new(gd[(k * 3 + i) * 2], gd[(k * 3 + i) * 2 + 1]) * f;
@@ -702,6 +737,27 @@ impl WeightedBuffers {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The rotor gives the exact phasors to ~1e-15 over long runs of pixel coordinates, for
+    /// frequencies up to Nyquist and offsets of both signs.
+    #[test]
+    fn phasors_match_the_exact_ones() {
+        for n in [1usize, 2, 15, 16, 17, 1000, 4097] {
+            let ts: Vec<f64> = (0..n).map(|i| i as f64 - (n / 2) as f64).collect();
+            for freq in [-3.1, -0.7, 0.0, 0.013, 1.9, std::f64::consts::PI] {
+                let got: Vec<Cplx> = phasors(freq, &ts).collect();
+                assert_eq!(got.len(), n);
+                for (g, &t) in got.iter().zip(&ts) {
+                    let exact = Cplx::from_polar(1.0, freq * t);
+                    let tolerance = f64::EPSILON * (16.0 + (freq * t).abs());
+                    assert!(
+                        (g - exact).norm() < tolerance,
+                        "n {n}, freq {freq}, t {t}: {g} ≠ {exact}"
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn recovers_pure_cosines() {
