@@ -131,28 +131,48 @@ impl NoisePlan {
         let (draw_x, draw_y) = (InverseCdf::new(&cdf_x), InverseCdf::new(&cdf_y));
         const G1: f64 = 0.754_877_666_246_692_7;
         const G2: f64 = 0.569_840_290_998_053_2;
-        let mut positions: Vec<(u32, u32)> = (0..SAMPLES)
+        let drawn: Vec<(u32, u32)> = (0..SAMPLES)
             .map(|k| {
                 let u = (0.5 + G1 * k as f64).fract();
                 let v = (0.5 + G2 * k as f64).fract();
                 (draw_x.draw(&cdf_x, u) as u32, draw_y.draw(&cdf_y, v) as u32)
             })
             .collect();
-        // In memory order: the estimate does not depend on the order of its samples, and
-        // scattered reads of a large image were most of its time.
-        positions.sort_unstable_by_key(|&(x, y)| (y, x));
         NoisePlan {
             rows,
             cols,
-            positions,
+            positions: by_row(drawn),
             squares: Vec::with_capacity(SAMPLES),
         }
     }
 }
 
-/// Noise plans kept per thread for the sizes seen last (a tracked marker's field box changes
-/// by a pixel or two from frame to frame).
-const CACHED_PLANS: usize = 4;
+/// `positions` (`(col, row)`) grouped by row, in increasing row order (a counting sort): the
+/// estimate does not depend on the order of its samples, and reads scattered over a large
+/// image were most of its time. Plans are made often (a tracked field box changes size), so
+/// in linear time.
+fn by_row(positions: Vec<(u32, u32)>) -> Vec<(u32, u32)> {
+    let rows = positions.iter().map(|&(_, y)| y as usize + 1).max().unwrap_or(0);
+    let mut starts = vec![0usize; rows + 1];
+    for &(_, y) in &positions {
+        starts[y as usize + 1] += 1;
+    }
+    for r in 0..rows {
+        starts[r + 1] += starts[r];
+    }
+    let mut sorted = vec![(0, 0); positions.len()];
+    for p in positions {
+        let slot = &mut starts[p.1 as usize];
+        sorted[*slot] = p;
+        *slot += 1;
+    }
+    sorted
+}
+
+/// Noise plans kept per thread for the sizes seen last, 256 KiB each: each tracked marker's
+/// field box changes by a pixel or two from frame to frame (two markers of the real sequence
+/// `Image96`–`Image125` and their windows need ~10 sizes; 4 remade a plan twice a frame).
+const CACHED_PLANS: usize = 12;
 
 thread_local! {
     static PLANS: std::cell::RefCell<crate::lru::Lru<(usize, usize), NoisePlan>> =
