@@ -152,7 +152,11 @@ impl NoisePlan {
 /// image were most of its time. Plans are made often (a tracked field box changes size), so
 /// in linear time.
 fn by_row(positions: Vec<(u32, u32)>) -> Vec<(u32, u32)> {
-    let rows = positions.iter().map(|&(_, y)| y as usize + 1).max().unwrap_or(0);
+    let rows = positions
+        .iter()
+        .map(|&(_, y)| y as usize + 1)
+        .max()
+        .unwrap_or(0);
     let mut starts = vec![0usize; rows + 1];
     for &(_, y) in &positions {
         starts[y as usize + 1] += 1;
