@@ -231,9 +231,17 @@ impl FrameReader {
     /// call. Grey values as [`GreyImage::open`] gives them.
     pub fn read(&mut self, path: &Path, limits: &DecodeLimits) -> Result<&GreyImage> {
         read_file_into(path, limits, &mut self.bytes)?;
-        let decoder = checked_reader(&self.bytes, path, limits)?
-            .into_decoder()
-            .map_err(|e| read_error(path, e))?;
+        let reader = checked_reader(&self.bytes, path, limits)?;
+        if reader.format() == Some(image::ImageFormat::Pnm) {
+            if let Some((size, raster)) = binary_grey8_raster(&self.bytes) {
+                // The file's own samples: no decoded copy of a camera-sized frame.
+                self.image
+                    .assign_decoded(size, image::ColorType::L8, raster)
+                    .map_err(|e| read_error(path, e))?;
+                return Ok(&self.image);
+            }
+        }
+        let decoder = reader.into_decoder().map_err(|e| read_error(path, e))?;
         let (width, height) = image::ImageDecoder::dimensions(&decoder);
         let colour = image::ImageDecoder::color_type(&decoder);
         let total = usize::try_from(image::ImageDecoder::total_bytes(&decoder))
@@ -253,6 +261,24 @@ impl FrameReader {
         }
         Ok(&self.image)
     }
+}
+
+/// The size and samples of an 8-bit binary PGM (`P5`, largest sample 255) held in `bytes`,
+/// as they lie in the file after its header; `None` for any other PNM, or a file too short
+/// for its header's size (the decoder then reads it, or says why not).
+fn binary_grey8_raster(bytes: &[u8]) -> Option<((usize, usize), &[u8])> {
+    use image::codecs::pnm::{PnmDecoder, PnmSubtype, SampleEncoding};
+    let (cursor, header) = PnmDecoder::new(std::io::Cursor::new(bytes))
+        .ok()?
+        .into_inner();
+    let binary_grey = header.subtype() == PnmSubtype::Graymap(SampleEncoding::Binary);
+    if !binary_grey || header.maximal_sample() != 255 {
+        return None;
+    }
+    let (width, height) = (header.width() as usize, header.height() as usize);
+    let start = usize::try_from(cursor.position()).ok()?;
+    let raster = bytes.get(start..start.checked_add(width.checked_mul(height)?)?)?;
+    Some(((width, height), raster))
 }
 
 #[cfg(test)]
@@ -313,5 +339,60 @@ mod tests {
         }
         let missing = temp_path("missing.png");
         assert!(reader.read(&missing, &limits).is_err());
+    }
+
+    /// Hand-written PGM files, read from the file's own samples (binary, largest sample 255,
+    /// a comment in the header) or through the decoder (ASCII, another largest sample), give
+    /// what a fresh decode gives; one whose samples stop short is refused.
+    #[test]
+    fn pgm_files_read_as_a_fresh_decode_reads_them() {
+        let (w, h) = (5usize, 3usize);
+        let samples: Vec<u8> = (0..w * h).map(|i| (i * 17 % 256) as u8).collect();
+        let ascii: Vec<String> = samples.iter().map(|v| (v / 3).to_string()).collect();
+        let files: [(&str, Vec<u8>); 4] = [
+            (
+                "plain.pgm",
+                [format!("P5\n{w} {h}\n255\n").into_bytes(), samples.clone()].concat(),
+            ),
+            (
+                "comment.pgm",
+                [
+                    format!("P5 # made by hand\n{w}\n{h} 255\t").into_bytes(),
+                    samples.clone(),
+                ]
+                .concat(),
+            ),
+            (
+                "maxval.pgm",
+                [
+                    format!("P5\n{w} {h}\n100\n").into_bytes(),
+                    samples.iter().map(|v| v % 101).collect(),
+                ]
+                .concat(),
+            ),
+            (
+                "ascii.pgm",
+                format!("P2\n{w} {h}\n85\n{}\n", ascii.join(" ")).into_bytes(),
+            ),
+        ];
+        let (limits, mut reader) = (DecodeLimits::default(), FrameReader::default());
+        for (name, bytes) in &files {
+            let path = temp_path(name);
+            std::fs::write(&path, bytes).unwrap_or_else(|e| panic!("{e}"));
+            let fresh = GreyImage::open(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
+            let read = reader
+                .read(&path, &limits)
+                .unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!(read, &fresh, "{name}");
+            assert_eq!((read.width(), read.height()), (w, h), "{name}");
+            // The last sample or two cut off.
+            std::fs::write(&path, &bytes[..bytes.len() - 4]).unwrap_or_else(|e| panic!("{e}"));
+            assert!(reader.read(&path, &limits).is_err(), "{name} cut short");
+            let _ = std::fs::remove_file(&path);
+        }
+        assert_eq!(
+            binary_grey8_raster(&files[1].1).map(|r| r.1),
+            Some(&samples[..])
+        );
     }
 }
