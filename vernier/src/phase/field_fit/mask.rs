@@ -194,18 +194,29 @@ impl NodeMask {
             return 1.0;
         }
         // Squared distances in the search, one root at the end; a pixel on a discrepant cell
-        // (offset (0, 0), listed first) is at distance 0, the least there is.
-        let mut nearest2 = f64::INFINITY;
+        // (offset (0, 0), listed first) is at distance 0, the least there is. Only distances
+        // under the clearance matter (1 beyond), and the cells come nearest first: a cell at
+        // offset d is at least |d| − √2 from any pixel of this one, so the search stops at the
+        // first offset with |d|² ≥ (√2 + nearest)², past which none can come nearer.
+        let limit = self.clearance * self.clearance;
+        let stop_at = |nearest2: f64| (std::f64::consts::SQRT_2 + nearest2.sqrt()).powi(2);
+        let (mut nearest2, mut stop) = (limit, stop_at(limit));
         for &(d1, d2) in nearby {
+            if f64::from(i16::from(d1).pow(2) + i16::from(d2).pow(2)) >= stop {
+                break;
+            }
             let (w1, w2) = (c1 + i64::from(d1), c2 + i64::from(d2));
             let gap1 = ((v[0] - w1 as f64).abs() - 0.5).max(0.0);
             let gap2 = ((v[1] - w2 as f64).abs() - 0.5).max(0.0);
-            nearest2 = nearest2.min(gap1 * gap1 + gap2 * gap2);
-            if nearest2 == 0.0 {
-                break;
+            let distance2 = gap1 * gap1 + gap2 * gap2;
+            if distance2 < nearest2 {
+                if distance2 == 0.0 {
+                    return 0.0;
+                }
+                (nearest2, stop) = (distance2, stop_at(distance2));
             }
         }
-        if nearest2 >= self.clearance * self.clearance {
+        if nearest2 >= limit {
             1.0
         } else {
             let s = (0.5 * PI * nearest2.sqrt() / self.clearance).sin();
