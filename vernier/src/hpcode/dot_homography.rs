@@ -206,11 +206,17 @@ fn block_phase(
     let dl = to_lattice.column(0) * stride as f64;
     let turn = [0, 1].map(|axis| Complex64::from_polar(1.0, -TAU * dl[axis]));
     let (width, pixels) = (image.width(), image.pixels());
+    let last_step = (x1 - x0) as usize / stride;
     for y in (y0 as usize..=y1 as usize).step_by(stride) {
         let row = pixels.get(y * width..(y + 1) * width)?;
-        let mut l = to_lattice * (Vector2::new(x0, y as f64) - at);
+        let start = to_lattice * (Vector2::new(x0, y as f64) - at);
+        let Some((first, last)) = steps_within(start, dl, BLOCK_RADIUS, last_step) else {
+            continue;
+        };
+        let mut l = start + dl * first as f64;
         let mut e = [0, 1].map(|axis| Complex64::from_polar(1.0, -TAU * l[axis]));
-        for x in (x0 as usize..=x1 as usize).step_by(stride) {
+        let x = |step: usize| x0 as usize + step * stride;
+        for x in (x(first)..=x(last)).step_by(stride) {
             let rho2 = l.norm_squared() / (BLOCK_RADIUS * BLOCK_RADIUS);
             if rho2 < 1.0 {
                 let w = (1.0 - rho2) * (1.0 - rho2);
@@ -235,6 +241,35 @@ fn block_phase(
     let offset = Vector2::new(-z[0].arg() / TAU, -z[1].arg() / TAU);
     let strength = 0.5 * (z[0].norm() + z[1].norm()) / sw;
     Some((at + steps * offset, strength))
+}
+
+/// The first and last steps `k` (of `0..=last`) of the row `l + k·dl` (lattice offsets from a block's
+/// centre) that may lie within `radius` of the centre: the roots of `|l + k·dl|² = r²`, one
+/// step wider on each side for rounding (the caller still weighs each sample). `None` when
+/// the row misses the disc.
+fn steps_within(
+    l: Vector2<f64>,
+    dl: Vector2<f64>,
+    radius: f64,
+    last: usize,
+) -> Option<(usize, usize)> {
+    let (a, b, c) = (dl.dot(&dl), l.dot(&dl), l.dot(&l) - radius * radius);
+    if a <= 0.0 {
+        return Some((0, last));
+    }
+    let discriminant = b * b - a * c;
+    if discriminant < 0.0 {
+        return None;
+    }
+    let root = discriminant.sqrt();
+    let (low, high) = (
+        ((-b - root) / a).floor() - 1.0,
+        ((-b + root) / a).ceil() + 1.0,
+    );
+    if high < 0.0 || low > last as f64 {
+        return None;
+    }
+    Some((low.max(0.0) as usize, (high as usize).min(last)))
 }
 
 /// The homography through `blocks`, refitted [`OUTLIER_ROUNDS`] times without the blocks beyond
