@@ -243,10 +243,10 @@ fn block_phase(
     Some((at + steps * offset, strength))
 }
 
-/// The first and last steps `k` (of `0..=last`) of the row `l + k·dl` (lattice offsets from a block's
-/// centre) that may lie within `radius` of the centre: the roots of `|l + k·dl|² = r²`, one
-/// step wider on each side for rounding (the caller still weighs each sample). `None` when
-/// the row misses the disc.
+/// The first and last steps `k` (of `0..=last`) of the row `l + k·dl` (lattice offsets from
+/// a block's centre) that may lie within `radius` of the centre: the roots of
+/// `|l + k·dl|² = r²`, one step wider on each side for rounding (the caller still weighs each
+/// sample). `None` when the row misses the disc.
 fn steps_within(
     l: Vector2<f64>,
     dl: Vector2<f64>,
