@@ -264,10 +264,9 @@ impl CombinationSums {
             y: [[Cplx::default(); 3]; 7],
             offset: offset_phasors(planes),
         };
-        for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
-            let (n0, n1) = (n0 as f64, n1 as f64);
-            sums.x[k] = axis(wx, xs, n0 * planes[0].a + n1 * planes[1].a);
-            sums.y[k] = axis(wy, ys, n0 * planes[0].b + n1 * planes[1].b);
+        for (k, &combination) in COMBOS.iter().enumerate() {
+            sums.x[k] = axis(wx, xs, combined(combination, planes, |p| p.a));
+            sums.y[k] = axis(wy, ys, combined(combination, planes, |p| p.b));
         }
         sums
     }
@@ -298,7 +297,13 @@ fn of_combination((n0, n1): (i32, i32), value: impl Fn(usize) -> Cplx) -> Cplx {
 /// `e^{i(n0·c0 + n1·c1)}` for each combination of [`COMBOS`]: the planes' offsets' part of
 /// the sums.
 fn offset_phasors(planes: &[PhasePlane; 2]) -> [Cplx; 7] {
-    COMBOS.map(|(n0, n1)| Cplx::from_polar(1.0, n0 as f64 * planes[0].c + n1 as f64 * planes[1].c))
+    COMBOS.map(|combination| Cplx::from_polar(1.0, combined(combination, planes, |p| p.c)))
+}
+
+/// `n0·q(plane 0) + n1·q(plane 1)` for a combination `(n0, n1)` of [`COMBOS`] and a plane
+/// coefficient `q` (`a`, `b` or `c`): the combined phase's coefficient.
+fn combined((n0, n1): (i32, i32), planes: &[PhasePlane; 2], q: impl Fn(&PhasePlane) -> f64) -> f64 {
+    n0 as f64 * q(&planes[0]) + n1 as f64 * q(&planes[1])
 }
 
 /// One non-constant basis function of the model: `p(x, y)·Re(z·e^{iφ_lobe})`.
@@ -673,8 +678,8 @@ impl WeightedBuffers {
                 }
             }
         }
-        for (k, &(n0, n1)) in COMBOS.iter().enumerate() {
-            let alpha = n0 as f64 * planes[0].a + n1 as f64 * planes[1].a;
+        for (k, &combination) in COMBOS.iter().enumerate() {
+            let alpha = combined(combination, planes, |p| p.a);
             for (x, (&t, e)) in xs.iter().zip(phasors(alpha, xs)).enumerate() {
                 for i in 0..3 {
                     let v = e * t.powi(i as i32);
@@ -700,7 +705,7 @@ impl WeightedBuffers {
         let mut table: GramTable = [[[Cplx::default(); 3]; 3]; 7];
         let mut data_rotors = planes.map(|p| phasors(-p.b, ys));
         let mut gram_rotors =
-            COMBOS.map(|(n0, n1)| phasors(n0 as f64 * planes[0].b + n1 as f64 * planes[1].b, ys));
+            COMBOS.map(|combination| phasors(combined(combination, planes, |p| p.b), ys));
         for j in 0..rows {
             let (y, wy) = (ys[j], plan.wy[j]);
             for x in 0..cols {
