@@ -2,6 +2,10 @@
 
 use std::process::ExitCode;
 
+/// Frame-sized blocks reused from frame to frame (`vernier_ros::memory`).
+#[global_allocator]
+static ALLOCATOR: vernier_ros::memory::FrameBlocks = vernier_ros::memory::FrameBlocks::new();
+
 fn main() -> ExitCode {
     match vernier_ros::node::run(std::env::args().skip(1).collect()) {
         Ok(()) => ExitCode::SUCCESS,
