@@ -13,8 +13,9 @@ pub(crate) fn thread_count(threads: usize, jobs: usize) -> usize {
     asked.min(jobs).max(1)
 }
 
-/// `job(worker, item)` for every item, each of the `workers` (one thread each; their
-/// per-thread state, such as a phase engine) taking the next item not yet taken, so that
+/// `job(worker, item)` for every item, each of the `workers` (one task each on rayon's pool,
+/// whose threads outlive the call; their per-worker state, such as a phase engine) taking the
+/// next item not yet taken, so that
 /// costly items spread over the threads wherever they sit in the list. The results come back
 /// in the items' order, the sequential result whatever the number of workers; `None` when a
 /// thread panicked.
@@ -43,17 +44,24 @@ where
     let mut results: Vec<(usize, R)> = match workers {
         [] => return (items.is_empty()).then(Vec::new),
         [only] => take_and_run(only),
-        _ => std::thread::scope(|s| {
-            let handles: Vec<_> = workers
-                .iter_mut()
-                .map(|worker| s.spawn(|| take_and_run(worker)))
-                .collect();
-            let mut all = Vec::with_capacity(items.len());
-            for handle in handles {
-                all.extend(handle.join().ok()?);
-            }
-            Some(all)
-        })?,
+        _ => {
+            // rayon's pool: its threads live from frame to frame, and with them their caches.
+            let done = std::sync::Mutex::new(Vec::with_capacity(items.len()));
+            let run_all = || {
+                rayon::scope(|s| {
+                    for worker in workers.iter_mut() {
+                        let (done, take_and_run) = (&done, &take_and_run);
+                        s.spawn(move |_| {
+                            let mine = take_and_run(worker);
+                            done.lock().unwrap_or_else(|e| e.into_inner()).extend(mine);
+                        });
+                    }
+                })
+            };
+            // A job that panicked panics the scope: reported as `None`, as documented.
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(run_all)).ok()?;
+            done.into_inner().unwrap_or_else(|e| e.into_inner())
+        }
     };
     results.sort_by_key(|(k, _)| *k);
     Some(results.into_iter().map(|(_, r)| r).collect())
@@ -77,6 +85,11 @@ mod tests {
             assert_eq!(workers.iter().sum::<usize>(), items.len());
         }
         assert_eq!(map_in_order(&mut [(); 0], &items, |_, _| ()), None);
+        let panicking = map_in_order(&mut [(); 2], &items, |_, &v| {
+            assert!(v != 7, "job 7 fails");
+            v
+        });
+        assert_eq!(panicking, None);
         assert_eq!(
             map_in_order(&mut [(); 0], &[0u8; 0], |_, _| ()),
             Some(vec![])
