@@ -683,8 +683,7 @@ fn convert_rows<T, const N: usize>(
     let total = width * height;
     // Written once, not zeroed first: the zeroing was a second pass over the 20 MB. The
     // buffer's pages stay mapped from the frame before.
-    out.clear();
-    out.reserve(total);
+    crate::frame_buffer::reserve_fresh(out, total);
     if width > 0 && step > 0 {
         for row in data.chunks(step).take(height) {
             let start = out.len();

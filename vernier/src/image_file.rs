@@ -60,7 +60,8 @@ fn read_file_into(path: &Path, limits: &DecodeLimits, bytes: &mut Vec<u8>) -> Re
             crate::limits::megapixels(limits.max_pixels)
         )));
     }
-    bytes.clear();
+    // One byte more than the file: `read_to_end` then meets its end without growing.
+    crate::frame_buffer::reserve_fresh(bytes, usize::try_from(size).unwrap_or(0).saturating_add(1));
     std::fs::File::open(path)
         .and_then(|mut file| std::io::Read::read_to_end(&mut file, bytes))
         .map_err(|e| read_err(e.to_string()))?;

@@ -90,6 +90,7 @@ pub mod layout;
 pub mod limits;
 pub use error::{Error, Result};
 mod decimate;
+mod frame_buffer;
 pub mod grey_image;
 pub mod image_file;
 mod level_surface;
