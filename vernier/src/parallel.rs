@@ -15,10 +15,9 @@ pub(crate) fn thread_count(threads: usize, jobs: usize) -> usize {
 
 /// `job(worker, item)` for every item, each of the `workers` (one task each on rayon's pool,
 /// whose threads outlive the call; their per-worker state, such as a phase engine) taking the
-/// next item not yet taken, so that
-/// costly items spread over the threads wherever they sit in the list. The results come back
-/// in the items' order, the sequential result whatever the number of workers; `None` when a
-/// thread panicked.
+/// next item not yet taken, so that costly items spread over the threads wherever they sit in
+/// the list. The results come back in the items' order, the sequential result whatever the
+/// number of workers; `None` when a job panicked.
 pub(crate) fn map_in_order<W, T, R>(
     workers: &mut [W],
     items: &[T],
