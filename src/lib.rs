@@ -7,7 +7,8 @@
 //! `vernier-interface` crate, shared with `vernier bag` and re-exported here as [`messages`],
 //! [`params`], [`processing`] and [`ros_args`]. This crate is the DDS glue:
 //! [`param_services`] (`ros2 param`), [`diagnostics`], [`discovery`] (the ROS discovery
-//! environment variables), [`memory`] (frame-sized blocks reused, freed memory handed back) and [`node`] (DDS wiring).
+//! environment variables), [`memory`] (frame-sized blocks reused, freed memory handed back)
+//! and [`node`] (DDS wiring).
 pub mod diagnostics;
 pub mod discovery;
 #[cfg(test)]

@@ -96,6 +96,17 @@ struct KeptBlocks {
     bytes: usize,
 }
 
+impl KeptBlocks {
+    /// Takes the `k`-th kept block out (the later ones move up): its address.
+    fn remove(&mut self, k: usize) -> usize {
+        let (address, usable) = self.blocks[k];
+        self.blocks.copy_within(k + 1..self.count, k);
+        self.count -= 1;
+        self.bytes -= usable;
+        address
+    }
+}
+
 impl Default for FrameBlocks {
     fn default() -> Self {
         Self::new()
@@ -136,15 +147,10 @@ impl FrameBlocks {
     /// taken out of the cache.
     fn take(&self, size: usize) -> Option<*mut u8> {
         let mut kept = self.lock();
-        let count = kept.count;
-        let best = (0..count)
+        let best = (0..kept.count)
             .filter(|&k| (size..=2 * size).contains(&kept.blocks[k].1))
             .min_by_key(|&k| kept.blocks[k].1)?;
-        let (address, usable) = kept.blocks[best];
-        kept.blocks.copy_within(best + 1..count, best);
-        kept.count -= 1;
-        kept.bytes -= usable;
-        Some(address as *mut u8)
+        Some(kept.remove(best) as *mut u8)
     }
 
     /// Keeps the freed block `ptr` of `usable` bytes, handing back the oldest ones that no
@@ -162,12 +168,7 @@ impl FrameBlocks {
         {
             let mut kept = self.lock();
             while kept.count == CACHED_BLOCKS || kept.bytes + usable > CACHED_BYTES {
-                let (address, size) = kept.blocks[0];
-                let count = kept.count;
-                kept.blocks.copy_within(1..count, 0);
-                kept.count -= 1;
-                kept.bytes -= size;
-                evicted[n_evicted] = address;
+                evicted[n_evicted] = kept.remove(0);
                 n_evicted += 1;
             }
             let count = kept.count;
